@@ -1,0 +1,1 @@
+"""DAG engine, CLI and run-folder handling of pano-pipe."""

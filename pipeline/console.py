@@ -1,0 +1,46 @@
+"""The one rich console and progress-bar factory the pipeline prints through."""
+
+from __future__ import annotations
+
+import sys
+
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TaskProgressColumn,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+
+console = Console(stderr=True, highlight=False)
+
+
+def make_progress(*extra_columns) -> Progress:
+    """A progress bar with count, rate (via extra columns) and ETA; quiet when not a terminal."""
+    return Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TaskProgressColumn(),
+        *extra_columns,
+        TimeElapsedColumn(),
+        TextColumn("ETA"),
+        TimeRemainingColumn(),
+        console=console,
+        transient=False,
+        disable=not sys.stderr.isatty(),
+    )
+
+
+def track(iterable, description: str = "", total: int | None = None):
+    """Iterate with a progress bar (count, %, elapsed, ETA)."""
+    if total is None and hasattr(iterable, "__len__"):
+        total = len(iterable)
+    with make_progress() as progress:
+        task = progress.add_task(description, total=total)
+        for item in iterable:
+            yield item
+            progress.advance(task)

@@ -1,0 +1,63 @@
+"""The stage DAG, declared in one place.
+
+Each entry names the stage's inputs (upstream artifacts; True = required),
+the scene files it reads (only those enter its cache key), the code it depends
+on (its version), and when a scene does not call for it.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+
+from pipeline.stage import StageSpec
+
+
+@cache
+def build_registry() -> dict[str, StageSpec]:
+    from stages import align, depth, evaluate, layout, sampling, train, union
+
+    specs = [
+        StageSpec(
+            "layout", layout.Params, layout.Output, layout.run,
+            scene_inputs=("images", "layout"), skip_reason=layout.skip_reason,
+            code=("stages.layout", "layoutnet", "panogeom"),
+            description="room layout per view (HorizonNet-compatible ONNX or supplied boundaries)",
+        ),
+        StageSpec(
+            "depth", depth.Params, depth.Output, depth.run,
+            scene_inputs=("images", "depth"), skip_reason=depth.skip_reason,
+            code=("stages.depth", "panogeom"),
+            description="depth per view (ONNX model or supplied files)",
+        ),
+        StageSpec(
+            "union", union.Params, union.Output, union.run,
+            inputs={"layout": True}, scene_inputs=(),
+            code=("stages.union",),
+            description="union of the per-view floor plans in the world frame",
+        ),
+        StageSpec(
+            "sampling", sampling.Params, sampling.Output, sampling.run,
+            inputs={"union": True, "layout": True}, scene_inputs=("images",),
+            code=("stages.sampling", "panogeom"),
+            description="box sampling of the floor plan into a layout point cloud",
+        ),
+        StageSpec(
+            "align", align.Params, align.Output, align.run,
+            inputs={"depth": True, "layout": False, "sampling": False}, scene_inputs=("images",),
+            code=("stages.align", "panogeom"),
+            description="depth clouds scaled to the layout and merged with it (open3d)",
+        ),
+        StageSpec(
+            "train", train.Params, train.Output, train.run,
+            inputs={"align": False, "sampling": False, "union": False}, scene_inputs=("images",),
+            code=("stages.train", "gaussians", "splatting"),
+            description="360° Gaussian splatting optimisation",
+        ),
+        StageSpec(
+            "evaluate", evaluate.Params, evaluate.Output, evaluate.run,
+            inputs={"train": True, "union": False}, scene_inputs=("images", "gt"),
+            code=("stages.evaluate", "gaussians", "splatting"),
+            description="metrics on the held-out views",
+        ),
+    ]
+    return {s.name: s for s in specs}

@@ -1,0 +1,103 @@
+"""What a stage is: a pure function from typed inputs to a typed artifact.
+
+A stage module (stages/<name>.py) defines
+
+    class Params(BaseModel): ...                       # its parameters
+    class Output(BaseModel): ...                       # the `data` of its artifact.json (schemas/)
+    def skip_reason(scene, params) -> str | None: ...  # why this scene does not call for it
+    def run(ctx: StageContext) -> Output: ...          # the work; writes files into ctx.out_dir
+
+and pipeline/registry.py wires it into the DAG.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Generic, TypeVar
+
+from pydantic import BaseModel
+
+from schemas.scene import Scene
+
+P = TypeVar("P", bound=BaseModel)
+D = TypeVar("D", bound=BaseModel)
+
+#: Kinds of scene files a stage may read; only those enter its cache key.
+SCENE_INPUTS = ("images", "layout", "depth", "gt")
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    name: str
+    params: type[BaseModel]
+    output: type[BaseModel]
+    run: Callable[[StageContext], BaseModel]
+    #: upstream stage -> required? A skipped required input skips this stage;
+    #: a skipped optional input reaches `run` as None.
+    inputs: dict[str, bool] = field(default_factory=dict)
+    scene_inputs: tuple[str, ...] = ("images",)
+    skip_reason: Callable[[Scene, BaseModel], str | None] | None = None
+    #: Source the stage depends on (its module plus libraries like splatting/);
+    #: their content hash is the stage's code version.
+    code: tuple[str, ...] = ()
+    description: str = ""
+
+    def code_version(self) -> str:
+        h = hashlib.sha256()
+        for path in sorted(_source_files(self.code)):
+            h.update(path.name.encode())
+            h.update(path.read_bytes())
+        return h.hexdigest()[:16]
+
+
+def _source_files(modules: Iterable[str]) -> Iterator[Path]:
+    import importlib.util
+
+    for mod in modules:
+        spec = importlib.util.find_spec(mod)
+        if spec is None or spec.origin is None:
+            continue
+        origin = Path(spec.origin)
+        if origin.name == "__init__.py":  # a package: every source file in it
+            for p in origin.parent.rglob("*"):
+                if p.suffix in {".py", ".cpp", ".cu", ".h"} and "__pycache__" not in p.parts:
+                    yield p
+        else:
+            yield origin
+
+
+@dataclass
+class Loaded(Generic[D]):
+    """An upstream artifact: its typed data and the folder its relative paths resolve against."""
+
+    data: D
+    dir: Path
+
+    def path(self, rel: str) -> Path:
+        return self.dir / rel
+
+
+@dataclass
+class StageContext(Generic[P]):
+    scene: Scene
+    params: P
+    inputs: dict[str, Loaded | None]
+    out_dir: Path
+    #: Progress reporter: ctx.track(iterable, "what", total=n) yields the items.
+    track: Callable[..., Iterable[Any]] = field(default=lambda it, description="", total=None: it)
+    warnings: list[str] = field(default_factory=list)
+    #: A folder that survives a failed or interrupted attempt (checkpoints for --resume).
+    scratch_dir: Path | None = None
+    resume: bool = False
+
+    def input(self, name: str) -> Loaded | None:
+        return self.inputs.get(name)
+
+    def warn(self, message: str) -> None:
+        from pipeline.console import console
+
+        console.print(f"[yellow]warning:[/] {message}")
+        self.warnings.append(message)

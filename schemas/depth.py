@@ -1,0 +1,19 @@
+"""Artifact of the `depth` stage: one depth map per view."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, Field
+
+
+class ViewDepth(BaseModel):
+    view: str
+    depth: str = Field(description="[H,W] float32 .npy along the ray; NaN where invalid.")
+    kind: Literal["metric", "relative", "disparity"]
+    source: Literal["file", "model"]
+    valid_fraction: float = Field(ge=0, le=1)
+
+
+class DepthOutput(BaseModel):
+    views: list[ViewDepth]

@@ -1,0 +1,146 @@
+"""The scene manifest, `scene.json` (DESIGN.md, "A scene folder")."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+Matrix4 = list[list[float]]
+
+LAYOUT_SUFFIXES = (".json", ".txt", ".npy")
+DEPTH_SUFFIXES = (".png", ".npy")
+
+
+class View(BaseModel):
+    """One panorama: its image, camera-to-world pose and split."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1, description="Unique view name, also the stem of its files.")
+    image: str = Field(description="Equirectangular image (2:1), relative to the scene folder.")
+    pose: Matrix4 = Field(description="Camera-to-world 4x4, row-major, metres; OpenCV axes, y down.")
+    split: Literal["train", "test"] = "train"
+    camera_height: float | None = Field(
+        default=None, gt=0, description="Camera height above the floor in metres, where known."
+    )
+    layout: str | None = Field(
+        default=None, description="Supplied layout boundaries (.json HorizonNet, .txt corners, .npy [2,W])."
+    )
+    depth: str | None = Field(
+        default=None, description="Supplied depth (distance along the ray): .png uint16 mm or .npy metres."
+    )
+    gt_depth: str | None = Field(
+        default=None, description="Ground-truth depth (.npy metres) for evaluation only; never used to train."
+    )
+
+    @field_validator("pose")
+    @classmethod
+    def _rigid(cls, pose: Matrix4) -> Matrix4:
+        m = np.asarray(pose, dtype=np.float64)
+        if m.shape != (4, 4):
+            raise ValueError(f"must be 4x4, got shape {list(m.shape)}")
+        if not np.all(np.isfinite(m)):
+            raise ValueError("contains NaN or Inf")
+        if not np.allclose(m[3], [0, 0, 0, 1], atol=1e-6):
+            raise ValueError(f"last row must be [0, 0, 0, 1], got {m[3].tolist()}")
+        r = m[:3, :3]
+        err = float(np.abs(r.T @ r - np.eye(3)).max())
+        if err > 1e-4 or np.linalg.det(r) < 0:
+            raise ValueError(f"not a rigid transform (|R^T R - I| = {err:.2g}, det R = {np.linalg.det(r):.3g})")
+        return pose
+
+    @property
+    def pose_matrix(self) -> np.ndarray:
+        return np.asarray(self.pose, dtype=np.float64)
+
+    @property
+    def viewmat(self) -> np.ndarray:
+        """World-to-camera 4x4."""
+        return np.linalg.inv(self.pose_matrix)
+
+    @property
+    def position(self) -> np.ndarray:
+        return self.pose_matrix[:3, 3].copy()
+
+
+class SceneManifest(BaseModel):
+    """`scene.json`: the list of views. Paths are relative to the scene folder."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str | None = Field(default=None, description="Scene name; defaults to the folder name.")
+    views: list[View] = Field(min_length=1)
+    floor_plan: str | None = Field(
+        default=None, description="Ground-truth floor plan JSON (simulator), for evaluation only."
+    )
+
+    @model_validator(mode="after")
+    def _unique_and_trainable(self) -> SceneManifest:
+        seen: set[str] = set()
+        for v in self.views:
+            if v.name in seen:
+                raise ValueError(f"duplicate view name {v.name!r}")
+            seen.add(v.name)
+        if not any(v.split == "train" for v in self.views):
+            raise ValueError("the train split is empty: at least one view needs split 'train'")
+        return self
+
+    def train_views(self) -> list[View]:
+        return [v for v in self.views if v.split == "train"]
+
+    def test_views(self) -> list[View]:
+        return [v for v in self.views if v.split == "test"]
+
+    def view(self, name: str) -> View:
+        for v in self.views:
+            if v.name == name:
+                return v
+        raise KeyError(name)
+
+
+class Scene(BaseModel):
+    """A validated scene: its folder and manifest, with supplied files resolved."""
+
+    model_config = ConfigDict(arbitrary_types_allowed=True)
+
+    root: Path
+    manifest: SceneManifest
+
+    @property
+    def name(self) -> str:
+        return self.manifest.name or self.root.resolve().name
+
+    @property
+    def views(self) -> list[View]:
+        return self.manifest.views
+
+    def path(self, rel: str) -> Path:
+        return self.root / rel
+
+    def image_path(self, view: View) -> Path:
+        return self.root / view.image
+
+    def layout_path(self, view: View) -> Path | None:
+        """The supplied layout file: named in the manifest, else found as layout/<view>.{json,txt,npy}."""
+        if view.layout:
+            return self.root / view.layout
+        return _first_existing(self.root / "layout", view.name, LAYOUT_SUFFIXES)
+
+    def depth_path(self, view: View) -> Path | None:
+        if view.depth:
+            return self.root / view.depth
+        return _first_existing(self.root / "depth", view.name, DEPTH_SUFFIXES)
+
+    def gt_depth_path(self, view: View) -> Path | None:
+        return self.root / view.gt_depth if view.gt_depth else None
+
+
+def _first_existing(folder: Path, stem: str, suffixes: tuple[str, ...]) -> Path | None:
+    for s in suffixes:
+        p = folder / f"{stem}{s}"
+        if p.is_file():
+            return p
+    return None
