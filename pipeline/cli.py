@@ -163,6 +163,20 @@ def schema(out: Annotated[Path, typer.Argument(help="Folder to write the JSON Sc
         console.print(f"wrote {out / (name + '.schema.json')}")
 
 
+@app.command("import-nerfstudio")
+def import_nerfstudio_command(
+    transforms: Annotated[Path, typer.Argument(help="nerfstudio transforms.json (EQUIRECTANGULAR).")],
+    out: Annotated[Path, typer.Argument(help="Scene folder to write.")],
+    world_up: Annotated[str, typer.Option(help="Up axis of the nerfstudio world: +z, +y or -y.")] = "+z",
+    test_every: Annotated[int, typer.Option(help="Every Nth frame is a test view (0: none).")] = 8,
+) -> None:
+    """Make a scene folder from a nerfstudio transforms.json."""
+    from pipeline.importers import import_nerfstudio
+
+    path = import_nerfstudio(transforms, out, world_up=world_up, test_every=test_every)
+    console.print(f"wrote {path}")
+
+
 def main() -> None:
     """Console entry point: one-line errors with exit code 2 unless --debug."""
     try:

@@ -26,7 +26,7 @@ def build_registry() -> dict[str, StageSpec]:
         StageSpec(
             "depth", depth.Params, depth.Output, depth.run,
             scene_inputs=("images", "depth"), skip_reason=depth.skip_reason,
-            code=("stages.depth", "panogeom"),
+            code=("stages.depth", "depthnet", "panogeom"),
             description="depth per view (ONNX model or supplied files)",
         ),
         StageSpec(

@@ -1,0 +1,51 @@
+# pano-pipe: `make demo` and `make test` are all a fresh machine needs.
+SHELL := /bin/bash
+PY := .venv/bin/python
+PIP := .venv/bin/pip
+BIN := .venv/bin
+STAMP := .venv/.installed
+DEMO_SCENE := scenes/demo
+TORCH := torch==2.13.0
+# Debian packages: open3d needs libusb and libgomp; the report test uses chromium.
+APT_REQUIRED := libusb-1.0-0 libgomp1
+APT_OPTIONAL := chromium
+
+.PHONY: setup demo test bench clean-venv system-deps
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@$(MAKE) --no-print-directory system-deps
+	@test -x $(PY) || python3 -m venv .venv
+	$(PIP) install -q --upgrade pip
+	@# torch first and pinned: the CPU build, so no resolver pulls CUDA wheels.
+	$(PIP) install -q $(TORCH)
+	$(PIP) install -q -e ".[test]"
+	@touch $(STAMP)
+
+system-deps:
+	@missing=""; for p in $(APT_REQUIRED); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	opt=""; for p in $(APT_OPTIONAL); do dpkg -s $$p >/dev/null 2>&1 || opt="$$opt $$p"; done; \
+	if [ -n "$$missing$$opt" ]; then \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] && echo "" || echo sudo ); \
+	  echo "installing Debian packages:$$missing$$opt"; \
+	  $$SUDO apt-get update -qq >/dev/null || true; \
+	  if [ -n "$$missing" ]; then $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing >/dev/null; fi; \
+	  if [ -n "$$opt" ]; then $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$opt >/dev/null \
+	    || echo "note: optional$$opt not installed (the report's browser test will skip)"; fi; \
+	fi
+
+demo: setup
+	$(BIN)/pano-pipe simulate $(DEMO_SCENE) --preset demo --with-layout --with-depth
+	$(BIN)/pano-pipe run all $(DEMO_SCENE)
+	$(BIN)/pano-pipe report $(DEMO_SCENE)
+
+test: setup
+	$(PY) -m pytest -q
+
+bench: setup
+	$(BIN)/pano-pipe bench render
+	$(BIN)/pano-pipe bench pipeline
+
+clean-venv:
+	rm -rf .venv

@@ -1,0 +1,22 @@
+"""Artifact of the `train` stage: the optimised Gaussians and how they were made."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, Field
+
+
+class TrainOutput(BaseModel):
+    ply: str = Field(description="point_cloud.ply in the standard 3DGS layout (see docs/training.md).")
+    log: str = Field(description="train_log.jsonl: iteration, loss terms, PSNR, Gaussian count, wall time.")
+    num_gaussians: int
+    iterations: int
+    train_seconds: float
+    resolution: tuple[int, int] = Field(description="Training (height, width).")
+    sh_degree: int
+    init: Literal["random", "layout", "depth", "layout+depth"]
+    projection: Literal["360", "cubemap"]
+    layout_reg: bool
+    backend: str
+    final_train_psnr: float | None = None

@@ -1,0 +1,48 @@
+"""Shared test helpers: tiny valid scenes to break in specific ways."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+def yaw_pose(yaw: float, position=(0.0, -1.5, 0.0)) -> list[list[float]]:
+    c, s = np.cos(yaw), np.sin(yaw)
+    m = np.eye(4)
+    m[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    m[:3, 3] = position
+    return m.tolist()
+
+
+def write_tiny_scene(root: Path, n_train: int = 2, n_test: int = 1, height: int = 8, seed: int = 0) -> Path:
+    """A valid scene folder with random 2:1 images and level poses."""
+    rng = np.random.default_rng(seed)
+    (root / "images").mkdir(parents=True, exist_ok=True)
+    views = []
+    for i in range(n_train + n_test):
+        name = f"v{i}"
+        img = rng.integers(0, 255, size=(height, 2 * height, 3), dtype=np.uint8)
+        cv2.imwrite(str(root / "images" / f"{name}.png"), img)
+        views.append(
+            {
+                "name": name,
+                "image": f"images/{name}.png",
+                "pose": yaw_pose(0.3 * i, (0.5 * i, -1.5, 0.2 * i)),
+                "split": "train" if i < n_train else "test",
+                "camera_height": 1.5,
+            }
+        )
+    (root / "scene.json").write_text(json.dumps({"name": root.name, "views": views}, indent=2))
+    return root
+
+
+@pytest.fixture
+def tiny_scene(tmp_path: Path) -> Path:
+    return write_tiny_scene(tmp_path / "tiny")
