@@ -38,19 +38,19 @@ def build_registry() -> dict[str, StageSpec]:
         StageSpec(
             "sampling", sampling.Params, sampling.Output, sampling.run,
             inputs={"union": True, "layout": True}, scene_inputs=("images",),
-            code=("stages.sampling", "panogeom"),
+            code=("stages.sampling", "stages.union", "stages.cloud_io", "panogeom"),
             description="box sampling of the floor plan into a layout point cloud",
         ),
         StageSpec(
             "align", align.Params, align.Output, align.run,
             inputs={"depth": True, "layout": False, "sampling": False}, scene_inputs=("images",),
-            code=("stages.align", "panogeom"),
+            code=("stages.align", "stages.cloud_io", "panogeom"),
             description="depth clouds scaled to the layout and merged with it (open3d)",
         ),
         StageSpec(
             "train", train.Params, train.Output, train.run,
             inputs={"align": False, "sampling": False, "union": False}, scene_inputs=("images",),
-            code=("stages.train", "gaussians", "splatting"),
+            code=("stages.train", "stages.cloud_io", "gaussians", "splatting"),
             description="360° Gaussian splatting optimisation",
         ),
         StageSpec(
