@@ -1,0 +1,147 @@
+"""Equirectangular rendering of a simulated world from one camera.
+
+Two passes:
+  * the ground-truth pass, one float64 ray per pixel centre (DESIGN.md's
+    mapping): distance along the ray and surface ids;
+  * the colour pass: the same hits when `aa` is off, otherwise an n x n grid of
+    float32 sub-pixel rays per pixel, box-filtered down.
+Colour = albedo (flat per material, or procedural with `texture`) times the
+irradiance (only with `shading`), then exposure and sensor noise (`noise`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from panogeom.equirect import column_longitudes, row_latitudes
+from simulate import effects
+from simulate.geometry import Box, Camera, World
+from simulate.raycast import CEILING, FLOOR, WALL0, Hits, box_id0, cast_grid, normals
+
+CHUNK_RAYS = 1 << 17
+
+
+@dataclass
+class ViewRender:
+    image: np.ndarray  # [H,W,3] float in [0,1]
+    depth: np.ndarray  # [H,W] float64 metres along the ray
+    sid: np.ndarray  # [H,W] surface id at pixel centres
+
+
+class _Materials:
+    """Per-surface-id look-up tables: flat colour, texture kind, texture frame."""
+
+    def __init__(self, world: World, boxes: list[Box]):
+        nsurf = box_id0(world) + len(boxes)
+        kinds = effects.TEXTURE_KINDS
+        rgb = np.zeros((nsurf, 3))
+        kind = np.zeros(nsurf, dtype=np.int64)
+        # uv = coef[key] @ (x, y, z, 1), key = 3 * sid + box face axis (0 elsewhere).
+        coef = np.zeros((3 * nsurf, 2, 4))
+        fl = "floor_" + world.floor_material
+        rgb[FLOOR], kind[FLOOR] = effects.MATERIAL_RGB[fl], kinds.index(fl)
+        rgb[CEILING], kind[CEILING] = effects.MATERIAL_RGB["ceiling"], kinds.index("plain")
+        for s in (FLOOR, CEILING):
+            coef[3 * s, 0, 0] = 1.0  # u = x
+            coef[3 * s, 1, 2] = 1.0  # v = z
+        off = 0.0  # running arc length keeps the pattern continuous around corners
+        for k, wall in enumerate(world.walls):
+            s = WALL0 + k
+            mat = wall.material
+            rgb[s] = effects.MATERIAL_RGB[mat]
+            kind[s] = kinds.index("wallpaper" if mat == "wallpaper" else "plain")
+            ex, ez = (wall.b - wall.a) / wall.length
+            coef[3 * s, 0] = (ex, 0.0, ez, off - ex * wall.a[0] - ez * wall.a[1])
+            coef[3 * s, 1, 1] = 1.0  # v = y
+            off += wall.length
+        for j, bx in enumerate(boxes):
+            s = box_id0(world) + j
+            rgb[s] = bx.color
+            kind[s] = kinds.index(bx.material)
+            for a, (i0, i1) in enumerate(((2, 1), (0, 2), (0, 1))):
+                coef[3 * s + a, 0, i0] = 1.0
+                coef[3 * s + a, 1, i1] = 1.0
+        self.rgb = rgb
+        self.kind = kind
+        self.coef = coef
+        self.boxes = boxes
+
+
+def _uv(hits: Hits, points: np.ndarray, m: _Materials) -> np.ndarray:
+    """Texture coordinates [N,2] in metres: floor/ceiling (x, z); walls (arc length, y); box faces by axis."""
+    key = 3 * hits.sid + np.maximum(hits.box_axis, 0)
+    c = m.coef.astype(points.dtype)[key]  # [N,2,4]
+    uv = c[:, :, 3] + c[:, :, 0] * points[:, None, 0]
+    uv += c[:, :, 1] * points[:, None, 1]
+    uv += c[:, :, 2] * points[:, None, 2]
+    return uv
+
+
+def _colour(
+    hits: Hits, dirs: np.ndarray, origin: np.ndarray, world: World, m: _Materials, fx: set[str], timings: dict
+) -> np.ndarray:
+    albedo = m.rgb.astype(dirs.dtype)[hits.sid]
+    need_points = "texture" in fx or "shading" in fx
+    if need_points:
+        points = origin.astype(dirs.dtype)[None, :] + hits.t[:, None] * dirs
+    if "texture" in fx:
+        t0 = time.perf_counter()
+        albedo = effects.texture(m.kind[hits.sid], _uv(hits, points, m), albedo)
+        timings["texture"] = timings.get("texture", 0.0) + time.perf_counter() - t0
+    if "shading" in fx:
+        t0 = time.perf_counter()
+        nrm = normals(hits, dirs, world, m.boxes, origin)
+        albedo = albedo * effects.shading(points, nrm, world)[:, None]
+        timings["shading"] = timings.get("shading", 0.0) + time.perf_counter() - t0
+    return albedo
+
+
+def render_view(
+    world: World,
+    boxes: list[Box],
+    cam: Camera,
+    height: int,
+    fx: set[str],
+    aa_samples: int,
+    rng_noise: np.random.Generator | None,
+    timings: dict[str, float],
+) -> ViewRender:
+    h, w = height, 2 * height
+    rot = cam.rotation
+    origin = cam.position.astype(np.float64)
+    m = _Materials(world, boxes)
+    lon = column_longitudes(w)
+    lat = row_latitudes(h)
+    depth = np.empty((h, w), dtype=np.float64)
+    sid = np.empty((h, w), dtype=np.int32)
+    use_aa = "aa" in fx and aa_samples > 1
+    image = None if use_aa else np.empty((h, w, 3), dtype=np.float64)
+    rows_per_chunk = max(1, CHUNK_RAYS // w)
+    for r0 in range(0, h, rows_per_chunk):
+        r1 = min(h, r0 + rows_per_chunk)
+        hits, dirs = cast_grid(origin, rot, lat[r0:r1], lon, world, boxes, timings, dtype=np.float64)
+        depth[r0:r1] = hits.t.reshape(r1 - r0, w)
+        sid[r0:r1] = hits.sid.reshape(r1 - r0, w)
+        if not use_aa:
+            image[r0:r1] = _colour(hits, dirs, origin, world, m, fx, timings).reshape(r1 - r0, w, 3)
+    if use_aa:
+        image = effects.antialias(
+            lambda lat_s, lon_s: _supersampled_block(lat_s, lon_s, rot, origin, world, boxes, m, fx, timings),
+            h,
+            w,
+            aa_samples,
+            timings,
+        )
+    if "noise" in fx:
+        t0 = time.perf_counter()
+        image = effects.noise(image, rng_noise)
+        timings["noise"] = timings.get("noise", 0.0) + time.perf_counter() - t0
+    return ViewRender(image=np.clip(image, 0.0, 1.0), depth=depth, sid=sid)
+
+
+def _supersampled_block(lat_s, lon_s, rot, origin, world, boxes, m, fx, timings) -> np.ndarray:
+    hits, dirs = cast_grid(origin, rot, lat_s, lon_s, world, boxes, timings, shell_key="aa", dtype=np.float32)
+    return _colour(hits, dirs, origin, world, m, fx, timings).reshape(len(lat_s), len(lon_s), 3)
