@@ -177,6 +177,32 @@ def import_nerfstudio_command(
     console.print(f"wrote {path}")
 
 
+def user_errors(fn):
+    """Commands whose ValueErrors are about their arguments: report them as bad input (exit 2)."""
+    import functools
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except ValueError as e:
+            if isinstance(e, PanoError):
+                raise
+            raise PanoError(None, str(e)) from e
+
+    return wrapper
+
+
+def _register_commands() -> None:
+    """Commands that live beside the package they drive."""
+    from simulate.command import simulate_command
+
+    app.command("simulate")(user_errors(simulate_command))
+
+
+_register_commands()
+
+
 def main() -> None:
     """Console entry point: one-line errors with exit code 2 unless --debug."""
     try:
