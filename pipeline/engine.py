@@ -110,6 +110,7 @@ class Engine:
         if unknown:
             raise PanoError(config_source, f"unknown stage(s) {sorted(unknown)}; stages are {self.order}")
         self._fingerprints: dict[str, str] = {}
+        self._file_hashes: dict[Path, str] = {}
 
     # -- planning ---------------------------------------------------------
     def params_for(self, name: str) -> BaseModel:
@@ -145,6 +146,16 @@ class Engine:
             raise ValueError(f"unknown scene input kind {kind!r}")
         return [f for f in files if f is not None and f.is_file()]
 
+    def param_file_hashes(self, params: BaseModel) -> dict[str, str]:
+        """Content hashes of files named by parameters (models): replacing one reruns the stage."""
+        out = {}
+        for field_name, value in params:
+            if isinstance(value, Path) and value.is_file():
+                if value not in self._file_hashes:
+                    self._file_hashes[value] = sha256_file(value)
+                out[field_name] = self._file_hashes[value]
+        return out
+
     def plan(self) -> dict[str, StagePlan]:
         plans: dict[str, StagePlan] = {}
         for name in self.order:
@@ -169,6 +180,7 @@ class Engine:
                     "stage": name,
                     "scene": self.scene_fingerprint(spec.scene_inputs),
                     "params": params.model_dump(mode="json"),
+                    "param_files": self.param_file_hashes(params),
                     "code": spec.code_version(),
                     "upstream": upstream,
                 }

@@ -212,3 +212,22 @@ def test_unknown_stage_in_config_is_reported(tiny_scene, tmp_path):
     e = engine(tiny_scene, tmp_path / "run", {"a": {"valu": 3}})
     with pytest.raises(PanoError, match=r"\[a\].*valu"):
         e.plan()
+
+
+def test_replacing_a_model_file_reruns_the_stage(tiny_scene, tmp_path):
+    from pathlib import Path as _Path
+
+    class ModelParams(BaseModel):
+        model: _Path | None = None
+
+    def run(ctx):
+        return Out(file="", total=len(ctx.params.model.read_bytes()))
+
+    reg = {"m": StageSpec("m", ModelParams, Out, run)}
+    model = tmp_path / "model.onnx"
+    model.write_bytes(b"v1")
+    e = Engine(load_scene(tiny_scene), tmp_path / "run", reg, {"m": {"model": str(model)}})
+    e.run()
+    assert Engine(load_scene(tiny_scene), tmp_path / "run", reg, {"m": {"model": str(model)}}).plan()["m"].state == "up-to-date"
+    model.write_bytes(b"v2!")
+    assert Engine(load_scene(tiny_scene), tmp_path / "run", reg, {"m": {"model": str(model)}}).plan()["m"].state == "stale"
