@@ -195,9 +195,11 @@ def user_errors(fn):
 
 def _register_commands() -> None:
     """Commands that live beside the package they drive."""
+    from layoutnet.command import export_layout_model_command
     from simulate.command import simulate_command
 
     app.command("simulate")(user_errors(simulate_command))
+    app.command("export-layout-model")(export_layout_model_command)
 
 
 _register_commands()

@@ -12,7 +12,10 @@ Point2 = tuple[float, float]
 class ViewLayout(BaseModel):
     view: str
     source: Literal["model", "json", "txt", "npy"] = Field(description="Where the boundaries came from.")
-    boundaries: str = Field(description="[2,W] float32 .npy: ceiling and floor boundary latitudes (radians).")
+    boundaries: str = Field(
+        description="[2,W] float32 .npy at the image's width: ceiling and floor boundary latitudes (radians) "
+        "of the fitted room (consistent with floor_polygon and the heights)."
+    )
     confidence: str | None = Field(default=None, description="[W] float32 .npy per-column confidence in [0,1].")
     floor_polygon: list[Point2] = Field(
         description="Floor outline in the camera frame, (x, z) metres, counter-clockwise seen from above."
@@ -20,10 +23,27 @@ class ViewLayout(BaseModel):
     camera_height: float = Field(gt=0, description="Camera above the floor (m): floor plane at camera y = +h.")
     ceiling_distance: float = Field(gt=0, description="Camera below the ceiling (m): ceiling at camera y = -d.")
     camera_height_assumed: bool = Field(description="True when 1.6 m was assumed (no height in scene.json).")
+    # Added by the layout stage (optional for readers):
+    split: Literal["train", "test"] = Field(default="train", description="The view's split in scene.json.")
+    raw_boundaries: str | None = Field(
+        default=None,
+        description="[2,W'] float32 .npy: the boundaries as the source gave them (model: W'=1024; .npy: its "
+        "width); None for corner formats (.json/.txt), whose room is exactly the given corners.",
+    )
+    method: str = Field(
+        default="corners",
+        description="How the polygon was made: corners (given), manhattan, cuboid, atlanta, or raw "
+        "(fallback: the per-column outline).",
+    )
 
 
 class LayoutOutput(BaseModel):
     views: list[ViewLayout]
+    model: str | None = Field(default=None, description="The ONNX model used, if any.")
 
     def view(self, name: str) -> ViewLayout:
         return next(v for v in self.views if v.view == name)
+
+    def train_views(self) -> list[ViewLayout]:
+        """The layouts of training views: what the union of floor plans should use."""
+        return [v for v in self.views if v.split == "train"]
