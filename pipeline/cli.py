@@ -195,11 +195,16 @@ def user_errors(fn):
 
 def _register_commands() -> None:
     """Commands that live beside the package they drive."""
+    from evaluation.commands import ablate_command, render_command, report_command, sweep_command
     from layoutnet.command import export_layout_model_command
     from simulate.command import simulate_command
 
     app.command("simulate")(user_errors(simulate_command))
     app.command("export-layout-model")(export_layout_model_command)
+    app.command("report")(report_command)
+    app.command("ablate")(ablate_command)
+    app.command("sweep")(sweep_command)
+    app.command("render")(render_command)
 
 
 _register_commands()

@@ -38,6 +38,7 @@ class StagePlan:
     reason: str = ""
     last_duration_s: float | None = None
     upstream: dict[str, str] = field(default_factory=dict)
+    code_version: str = ""
 
 
 @dataclass
@@ -175,13 +176,14 @@ class Engine:
             upstream = {
                 dep: plans[dep].key or "skipped" for dep in spec.inputs
             }
+            code = spec.code_version()
             key = sha256_json(
                 {
                     "stage": name,
                     "scene": self.scene_fingerprint(spec.scene_inputs),
                     "params": params.model_dump(mode="json"),
                     "param_files": self.param_file_hashes(params),
-                    "code": spec.code_version(),
+                    "code": code,
                     "upstream": upstream,
                 }
             )
@@ -191,7 +193,9 @@ class Engine:
                 state = "up-to-date"
             else:
                 state = "stale"
-            plans[name] = StagePlan(name, state, params, key, last_duration_s=last, upstream=upstream)
+            plans[name] = StagePlan(
+                name, state, params, key, last_duration_s=last, upstream=upstream, code_version=code
+            )
         return plans
 
     # -- running ----------------------------------------------------------
@@ -261,7 +265,7 @@ class Engine:
                     key=p.key or "",
                     scene_hash=self.scene_fingerprint(spec.scene_inputs),
                     params=p.params.model_dump(mode="json"),
-                    code_version=spec.code_version(),
+                    code_version=p.code_version,  # as planned: the key was computed from it
                     upstream=p.upstream,
                     created=datetime.now(timezone.utc),
                     duration_s=duration,

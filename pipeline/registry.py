@@ -56,7 +56,7 @@ def build_registry() -> dict[str, StageSpec]:
         StageSpec(
             "evaluate", evaluate.Params, evaluate.Output, evaluate.run,
             inputs={"train": True, "union": False}, scene_inputs=("images", "gt"),
-            code=("stages.evaluate", "gaussians", "splatting"),
+            code=("stages.evaluate", "evaluation", "gaussians", "splatting"),
             description="metrics on the held-out views",
         ),
     ]

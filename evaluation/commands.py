@@ -1,0 +1,142 @@
+"""CLI commands `pano-pipe report / ablate / sweep / render` (typer-compatible functions;
+pipeline/cli.py registers them). Run folders default to runs/<scene-name>/ exactly as
+`pano-pipe run` does (pipeline.cli.make_engine)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from pipeline.console import console
+from pipeline.errors import PanoError
+
+# Same option shapes as pipeline/cli.py (redeclared: cli imports this module, so importing
+# its annotations at module level would be circular).
+SceneArg = Annotated[Path, typer.Argument(help="Scene folder holding scene.json.", show_default=False)]
+OutOpt = Annotated[Optional[Path], typer.Option("--out", help="Run folder (default: runs/<scene-name>/).")]
+ConfigOpt = Annotated[
+    Optional[Path], typer.Option("--config", help="YAML or JSON file of stage parameters: {stage: {param: value}}.")
+]
+SetOpt = Annotated[
+    Optional[list[str]], typer.Option("--set", help="Override one parameter: STAGE.PARAM=VALUE (repeatable).")
+]
+
+
+def _engine(scene: Path, out: Path | None, config: Path | None = None, set_: list[str] | None = None):
+    from pipeline.cli import make_engine
+
+    return make_engine(scene, out, config, set_)
+
+
+def _print_mean(mean: dict) -> None:
+    shown = ", ".join(f"{k} {v:.4g}" for k, v in mean.items() if isinstance(v, (int, float)))
+    console.print(f"[bold]test metrics:[/] {shown}")
+
+
+def report_command(scene: SceneArg, out: OutOpt = None, config: ConfigOpt = None, set_: SetOpt = None) -> None:
+    """Write the HTML report (self-contained) and its Markdown twin for a run folder.
+
+    --config/--set only matter for the "now" column (is each stage current under that configuration)."""
+    from evaluation.report import build_report, read_artifact
+
+    engine = _engine(scene, out, config, set_)
+    run_dir = engine.out_dir
+    if not run_dir.is_dir():
+        raise PanoError(run_dir, f"no run folder; run `pano-pipe run all {scene}` first")
+    try:
+        states = {name: p.state for name, p in engine.plan().items()}
+    except PanoError:
+        states = None  # a broken config must not stop a report of what exists
+    paths = build_report(run_dir, engine.scene, states=states)
+    ev = read_artifact(run_dir, "evaluate")
+    if ev is not None:
+        _print_mean(ev["data"].get("mean", {}))
+    console.print(f"[bold]report:[/] {paths.html}")
+    console.print(f"[bold]markdown:[/] {paths.markdown}")
+
+
+def ablate_command(
+    scene: SceneArg,
+    seeds: Annotated[int, typer.Option("--seeds", min=1, help="Seeds per variant (mean ± std).")] = 1,
+    out: OutOpt = None,
+    iterations: Annotated[
+        Optional[int], typer.Option("--iterations", min=1, help="Training iterations per variant (default: the train stage's).")
+    ] = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+) -> None:
+    """The paper's ablation: 3D-GS* (random init, cubemap) / + layout init / + 360° splatting / + layout regularisation."""
+    from evaluation.experiments import run_ablation
+
+    engine = _engine(scene, out, config, set_)
+    res = run_ablation(engine.scene, engine.out_dir, engine.config, seeds=seeds, iterations=iterations,
+                       log=console.print)
+    console.print(res["table"])
+    for n in res["notes"]:
+        console.print(n)
+    console.print(f"[bold]ablation:[/] {res['markdown']} · {res['json']} · {res['chart']}")
+
+
+def sweep_command(
+    scene: SceneArg,
+    out: OutOpt = None,
+    iterations: Annotated[str, typer.Option("--iterations", help="Comma-separated iteration counts.")] = "300,1000",
+    heights: Annotated[str, typer.Option("--heights", help="Comma-separated training heights (width = 2×height).")] = "64,128",
+    caps: Annotated[str, typer.Option("--caps", help="Comma-separated Gaussian caps; 'default' = the train preset's cap.")] = "5000,default",
+    eval_height: Annotated[
+        Optional[int], typer.Option("--eval-height", min=8, help="Evaluation height for every point (default: the largest training height).")
+    ] = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+) -> None:
+    """Accuracy against cost: iterations × training resolution × Gaussian cap → PSNR vs training seconds and FPS."""
+    from evaluation.experiments import parse_grid, run_sweep
+
+    engine = _engine(scene, out, config, set_)
+    res = run_sweep(engine.scene, engine.out_dir, engine.config, parse_grid(iterations), parse_grid(heights),
+                    parse_grid(caps, allow_none=True), eval_height=eval_height, log=console.print)
+    console.print(res["table"])
+    console.print(f"[bold]sweep:[/] {res['markdown']} · {res['json']} · {res['chart']}")
+
+
+def render_command(
+    scene: SceneArg,
+    path: Annotated[
+        str, typer.Option("--path", help="Views to fly through: train, test, all, or comma-separated view names.")
+    ] = "train",
+    perspective: Annotated[bool, typer.Option("--perspective", help="A 90° pinhole view instead of the panorama.")] = False,
+    frames: Annotated[int, typer.Option("--frames", min=1, help="Number of frames.")] = 60,
+    out: OutOpt = None,
+    height: Annotated[
+        Optional[int], typer.Option("--height", min=8, help="Frame height (default: the training height).")
+    ] = None,
+    fps: Annotated[float, typer.Option("--fps", min=1, help="Video frame rate.")] = 24.0,
+    backend: Annotated[Optional[str], typer.Option("--backend", help="Splatting backend (default: the renderer's).")] = None,
+) -> None:
+    """A fly-through video (mp4) between the views' poses, rendered from the trained model."""
+    from evaluation.flythrough import interpolate_poses, path_views, render_flythrough
+    from evaluation.model_io import equirect_camera, load_model, pinhole_camera
+    from pipeline.console import track
+    from pipeline.engine import load_artifact
+    from schemas.train import TrainOutput
+
+    engine = _engine(scene, out)
+    tdir = engine.out_dir / "train"
+    if not (tdir / "artifact.json").is_file():
+        raise PanoError(tdir / "artifact.json", f"missing; train first with `pano-pipe run train {scene}`")
+    train = load_artifact(tdir, TrainOutput)
+    views = path_views(engine.scene, path)
+    poses = interpolate_poses([v.pose_matrix for v in views], frames)
+    h = int(height or train.data.resolution[0])
+    # even frame sizes: many mp4 players reject odd ones
+    h += h % 2
+    camera = pinhole_camera(h, 2 * int(round(h * 2 / 3))) if perspective else equirect_camera(h, 2 * h)
+    g = load_model(train.path(train.data.ply))
+    slug = re.sub(r"[^A-Za-z0-9_.-]+", "_", path)[:60]
+    target = engine.out_dir / "render" / f"flythrough-{slug}-{'persp' if perspective else 'pano'}.mp4"
+    res = render_flythrough(g, poses, camera, target, fps=fps, backend=backend, track=track)
+    console.print(f"[bold]video:[/] {res.path} ({res.frames} frames, {res.size[1]}×{res.size[0]}, "
+                  f"{res.frames / max(res.seconds, 1e-9):.1f} frames/s rendered)")

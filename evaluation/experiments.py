@@ -1,0 +1,486 @@
+"""`pano-pipe ablate` and `pano-pipe sweep`: many pipeline runs that share their upstream stages.
+
+Each variant is an ordinary pipeline run (pipeline.engine.Engine) in its own
+sub-folder of the scene's run folder, with train/evaluate parameters
+overridden. The stages upstream of training (layout, depth, union, sampling,
+align) are computed once in the main run folder and copied into each variant
+folder; their cache keys do not depend on the train parameters, so the
+variant's engine finds them up to date and runs only train and evaluate.
+
+ablate: the paper's grid (Bai et al., Table 4), each with N seeds:
+  1. 3D-GS*          random init, cubemap projection, no layout regularisation
+  2. + layout init   layout(+depth) point cloud init
+  3. + 360 splatting direct equirectangular rendering instead of a cubemap
+  4. + layout reg    the layout regulariser
+sweep: iterations × training resolution × Gaussian cap → PSNR against
+training seconds and against render FPS, with the Pareto front.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import types
+import shutil
+from dataclasses import asdict, dataclass, field
+from itertools import product
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import PanoError
+
+# Paper's ablation on one Matterport3D scene, 4 views (DESIGN.md), for context in the table.
+PAPER_PSNR = {"3D-GS*": 13.64, "+ layout init": 15.98, "+ 360 splatting": 16.66, "+ layout reg": 17.72}
+
+#: Semantic settings of each ablation step; mapped onto the train stage's parameter names below.
+VARIANTS: list[tuple[str, str, dict]] = [
+    ("3dgs", "3D-GS*", {"init": "random", "projection": "cubemap", "layout_reg": False}),
+    ("layout-init", "+ layout init", {"init": "layout", "projection": "cubemap", "layout_reg": False}),
+    ("360", "+ 360 splatting", {"init": "layout", "projection": "360", "layout_reg": False}),
+    ("layout-reg", "+ layout reg", {"init": "layout", "projection": "360", "layout_reg": True}),
+]
+
+# Train-stage parameter names each semantic setting may go by (the first the stage has wins).
+_PARAM_ALIASES = {
+    "init": ("init", "init_mode", "initialisation", "initialization"),
+    "projection": ("projection", "render_mode", "camera_model"),
+    "layout_reg": ("layout_reg", "layout_regularisation", "use_layout_reg"),
+    "seed": ("seed",),
+    "iterations": ("iterations", "iters", "num_iterations"),
+    "resolution": ("resolution", "train_resolution", "height", "train_height"),
+    "max_gaussians": ("max_gaussians", "gaussian_cap", "cap"),
+}
+
+MAIN_STAGES = ("train", "evaluate")
+
+
+def train_param_fields() -> dict:
+    from stages import train
+
+    return dict(train.Params.model_fields)
+
+
+def map_train_overrides(settings: dict, fields: dict | None = None) -> tuple[dict, list[str]]:
+    """Semantic settings -> train-stage parameters; also the settings the stage has no parameter for."""
+    fields = train_param_fields() if fields is None else fields
+    out, missing = {}, []
+    for key, value in settings.items():
+        name = next((n for n in _PARAM_ALIASES.get(key, (key,)) if n in fields), None)
+        if name is None:
+            missing.append(key)
+            continue
+        if key == "init" and value == "layout":
+            value = _layout_init_value(fields[name])
+        out[name] = value
+    return out, missing
+
+
+def _layout_init_value(field_info) -> str:
+    """The stage's name for 'initialise from the layout prior': 'auto' resolves to the best
+    available cloud (layout + aligned depth), else 'layout+depth', else 'layout'."""
+    import typing
+
+    choices = [a for a in typing.get_args(field_info.annotation) if isinstance(a, str)]
+    for c in ("auto", "layout+depth", "layout"):
+        if c in choices:
+            return c
+    return "layout"
+
+
+def resolution_value(height: int, field_info) -> object:
+    """A training-resolution override in the form the stage's parameter takes (an int height or [H, W])."""
+    import typing
+
+    ann = field_info.annotation
+    # Union members (X | None) or the annotation itself; a tuple/list member means [H, W].
+    members = typing.get_args(ann) if typing.get_origin(ann) in (typing.Union, types.UnionType) else (ann,)
+    if any(typing.get_origin(a) in (tuple, list) or a in (tuple, list) for a in members):
+        return [int(height), 2 * int(height)]
+    return int(height)
+
+
+# ----------------------------------------------------------------------------- running variants
+
+
+def prepare_variant_dir(base_dir: Path, variant_dir: Path, stages: list[str]) -> None:
+    """Copy the shared upstream stage folders into a variant folder, replacing stale copies."""
+    variant_dir.mkdir(parents=True, exist_ok=True)
+    for s in stages:
+        src = base_dir / s
+        if not (src / "artifact.json").is_file():
+            continue  # skipped stage
+        dst = variant_dir / s
+        if (dst / "artifact.json").is_file():
+            try:
+                if json.loads((dst / "artifact.json").read_text())["meta"]["key"] == json.loads(
+                    (src / "artifact.json").read_text()
+                )["meta"]["key"]:
+                    continue
+            except (OSError, ValueError, KeyError):
+                pass
+            shutil.rmtree(dst)
+        shutil.copytree(src, dst)
+
+
+def upstream_stages(registry) -> list[str]:
+    from pipeline.engine import ancestors
+
+    return [s for s in registry if s in ancestors(registry, "train")]
+
+
+def merged_config(base: dict, train: dict, evaluate: dict | None = None) -> dict:
+    cfg = {k: dict(v) for k, v in base.items()}
+    cfg.setdefault("train", {}).update(train)
+    if evaluate:
+        cfg.setdefault("evaluate", {}).update(evaluate)
+    return cfg
+
+
+def run_variant(scene, base_dir: Path, variant_dir: Path, config: dict) -> dict:
+    """Run train + evaluate for one variant (upstream copied from base_dir); returns its summary."""
+    from pipeline.engine import Engine
+    from pipeline.registry import build_registry
+
+    reg = build_registry()
+    # Bring the shared upstream stages up to date first (a no-op when cached): copies of a
+    # stale base would only be recomputed in every variant folder.
+    Engine(scene, base_dir, reg, config, config_source="experiment config").run(until="align")
+    prepare_variant_dir(base_dir, variant_dir, upstream_stages(reg))
+    engine = Engine(scene, variant_dir, reg, config, config_source="experiment config")
+    results = engine.run()  # a variant already trained with these settings is cached
+    return summarise_run(variant_dir, results)
+
+
+def summarise_run(run_dir: Path, results=None) -> dict:
+    from evaluation.report import read_artifact
+
+    ev, tr = read_artifact(run_dir, "evaluate"), read_artifact(run_dir, "train")
+    if ev is None or tr is None:
+        raise PanoError(run_dir, "variant run finished without train/evaluate artifacts")
+    mean = ev["data"]["mean"]
+    ran = {r.name: r.outcome for r in results} if results else {}
+    return {
+        "dir": str(run_dir),
+        "psnr": mean.get("psnr"),
+        "ssim": mean.get("ssim"),
+        "ws_psnr": mean.get("ws_psnr"),
+        "lpips": mean.get("lpips"),
+        "depth_abs_rel": mean.get("depth_abs_rel"),
+        "train_seconds": tr["data"].get("train_seconds"),
+        "num_gaussians": tr["data"].get("num_gaussians"),
+        "fps": ev["data"].get("fps"),
+        "split": ev["data"].get("split"),
+        "train": {k: tr["data"].get(k) for k in ("init", "projection", "layout_reg", "iterations", "resolution")},
+        "cached": ran.get("train") == "cached",
+    }
+
+
+def mean_std(values: list[float]) -> tuple[float, float]:
+    vals = [v for v in values if v is not None and not math.isnan(v)]
+    if not vals:
+        return math.nan, math.nan
+    return float(np.mean(vals)), float(np.std(vals, ddof=1)) if len(vals) > 1 else 0.0
+
+
+# ----------------------------------------------------------------------------- ablation
+
+
+@dataclass
+class AblationRow:
+    key: str
+    label: str
+    settings: dict
+    runs: list[dict] = field(default_factory=list)
+
+    def stat(self, metric: str) -> tuple[float, float]:
+        return mean_std([r.get(metric) for r in self.runs])
+
+
+def ordering_notes(rows: list[AblationRow]) -> list[str]:
+    """One line per step: does it beat the previous step on mean PSNR (the paper's claim)?"""
+    notes = []
+    for prev, cur in zip(rows, rows[1:]):
+        (a, sa), (b, sb) = prev.stat("psnr"), cur.stat("psnr")
+        d = b - a
+        if math.isnan(d):
+            notes.append(f"{cur.label}: no PSNR to compare")
+        elif d > 0:
+            noise = max(sa, sb)
+            extra = f" (within one seed std {noise:.2f} dB)" if noise > 0 and d < noise else ""
+            notes.append(f"✓ {cur.label} improves on {prev.label} by {d:+.2f} dB{extra}")
+        else:
+            notes.append(f"✗ {cur.label} does NOT improve on {prev.label}: {d:+.2f} dB")
+    return notes
+
+
+def ablation_table(rows: list[AblationRow]) -> str:
+    lines = [
+        "| variant | PSNR (dB) | SSIM | WS-PSNR (dB) | LPIPS | train s | Gaussians | paper PSNR |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        cells = []
+        for m, d in (("psnr", 2), ("ssim", 3), ("ws_psnr", 2), ("lpips", 3), ("train_seconds", 0),
+                     ("num_gaussians", 0)):
+            mu, sd = r.stat(m)
+            cells.append("—" if math.isnan(mu) else f"{mu:.{d}f} ± {sd:.{d}f}")
+        lines.append(f"| {r.label} | " + " | ".join(cells) + f" | {PAPER_PSNR.get(r.label, '—')} |")
+    return "\n".join(lines)
+
+
+def plot_ablation(rows: list[AblationRow], path: Path) -> None:
+    from evaluation.report import _plt
+
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.5, 3.8))
+    x = np.arange(len(rows))
+    mus = [r.stat("psnr")[0] for r in rows]
+    sds = [r.stat("psnr")[1] for r in rows]
+    ax.bar(x, mus, yerr=sds, capsize=5, color=["C7", "C0", "C1", "C2"][: len(rows)], label="this run")
+    for i, r in enumerate(rows):
+        for run in r.runs:
+            ax.plot(i, run["psnr"], "k.", ms=4)
+        if not math.isnan(mus[i]):
+            ax.text(i, mus[i], f"{mus[i]:.2f}\n", ha="center", va="bottom", fontsize=8)
+    paper = [PAPER_PSNR.get(r.label, np.nan) for r in rows]
+    ax.plot(x, paper, "r_", ms=30, mew=2, label="paper (Matterport3D)")
+    ax.set_xticks(x, [r.label for r in rows], fontsize=8)
+    ax.set_ylabel("test PSNR (dB)")
+    finite = [v for v in mus + paper if not math.isnan(v)]
+    if finite:
+        ax.set_ylim(max(0.0, min(finite) - 3), max(finite) + 2)
+    ax.legend(fontsize=8, loc="upper left")
+    ax.set_title("ablation (mean ± std over seeds)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def run_ablation(scene, base_dir: Path, base_config: dict, seeds: int = 1, iterations: int | None = None,
+                 variants=None, out_dir: Path | None = None, log=print) -> dict:
+    """Run the ablation grid; writes ablation.{md,json,png} into out_dir (default <run>/ablate/)."""
+    from pipeline.engine import Engine
+    from pipeline.registry import build_registry
+
+    if seeds < 1:
+        raise PanoError("--seeds", "must be at least 1")
+    variants = VARIANTS if variants is None else variants
+    out_dir = Path(out_dir) if out_dir is not None else base_dir / "ablate"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    reg = build_registry()
+    fields = train_param_fields()
+    # The shared upstream stages, once, in the main run folder (cached if already there).
+    Engine(scene, base_dir, reg, base_config, config_source="config").run(until="align")
+
+    rows, warnings = [], []
+    for key, label, settings in variants:
+        extra = dict(settings)
+        if iterations is not None:
+            extra["iterations"] = iterations
+        row = AblationRow(key, label, settings)
+        for seed in range(seeds):
+            overrides, missing = map_train_overrides({**extra, "seed": seed}, fields)
+            if missing:
+                msg = f"the train stage has no parameter for {missing}; variant {label!r} cannot set them"
+                if msg not in warnings:
+                    warnings.append(msg)
+                    log(f"warning: {msg}")
+            cfg = merged_config(base_config, overrides, {"fps_repeats": 2})
+            log(f"ablate: {label} seed {seed} → {out_dir / f'{key}-s{seed}'}")
+            summary = run_variant(scene, base_dir, out_dir / f"{key}-s{seed}", cfg)
+            summary["seed"] = seed
+            got = summary["train"].get("init")
+            if settings.get("init") != "random" and got == "random":
+                msg = (f"variant {label!r} wanted a layout initialisation but the train stage used 'random' "
+                       "(the scene has no layout / the upstream stages were skipped): its row is not an ablation step")
+                if msg not in warnings:
+                    warnings.append(msg)
+                    log(f"warning: {msg}")
+            row.runs.append(summary)
+        rows.append(row)
+
+    notes = ordering_notes(rows)
+    table = ablation_table(rows)
+    plot_ablation(rows, out_dir / "ablation.png")
+    split = {r["split"] for row in rows for r in row.runs}
+    md = [f"# Ablation: {scene.name}", "",
+          f"{seeds} seed(s) per variant; iterations {iterations or 'stage default'}; "
+          f"metrics on the {'/'.join(sorted(split))} split.", "", table, "", *[f"- {n}" for n in notes]]
+    if warnings:
+        md += ["", *[f"> warning: {w}" for w in warnings]]
+    md += ["", "![ablation](ablation.png)", ""]
+    (out_dir / "ablation.md").write_text("\n".join(md))
+    doc = {
+        "scene": scene.name, "seeds": seeds, "iterations": iterations, "notes": notes, "warnings": warnings,
+        "variants": [
+            {"key": r.key, "label": r.label, "settings": r.settings,
+             **{m: dict(zip(("mean", "std"), r.stat(m))) for m in ("psnr", "ssim", "ws_psnr", "lpips",
+                                                                     "train_seconds", "num_gaussians")},
+             "paper_psnr": PAPER_PSNR.get(r.label), "runs": r.runs}
+            for r in rows
+        ],
+    }
+    (out_dir / "ablation.json").write_text(json.dumps(doc, indent=1, default=_json_default))
+    return {"table": table, "notes": notes, "markdown": out_dir / "ablation.md", "json": out_dir / "ablation.json",
+            "chart": out_dir / "ablation.png", "rows": rows}
+
+
+def _json_default(o):
+    if isinstance(o, float) and math.isnan(o):
+        return None
+    if isinstance(o, Path):
+        return str(o)
+    return str(o)
+
+
+# ----------------------------------------------------------------------------- sweep
+
+
+@dataclass
+class SweepPoint:
+    iterations: int
+    height: int
+    cap: int | None
+    psnr: float | None = None
+    ssim: float | None = None
+    ws_psnr: float | None = None
+    train_seconds: float | None = None
+    fps: float | None = None
+    num_gaussians: int | None = None
+    pareto_time: bool = False
+    pareto_fps: bool = False
+    dir: str = ""
+
+    @property
+    def label(self) -> str:
+        return f"it{self.iterations}-h{self.height}-cap{self.cap if self.cap is not None else 'default'}"
+
+
+def pareto_mask(quality: list[float], cost: list[float]) -> list[bool]:
+    """True where no other point has quality ≥ and cost ≤ with one of them strict (higher quality,
+    lower cost are better)."""
+    n = len(quality)
+    out = []
+    for i in range(n):
+        dominated = any(
+            quality[j] >= quality[i] and cost[j] <= cost[i] and (quality[j] > quality[i] or cost[j] < cost[i])
+            for j in range(n) if j != i
+        )
+        out.append(not dominated)
+    return out
+
+
+def parse_grid(text: str, kind=int, allow_none: bool = False) -> list:
+    vals = []
+    for tok in (t.strip() for t in str(text).split(",") if t.strip()):
+        if allow_none and tok.lower() in ("none", "default"):
+            vals.append(None)
+            continue
+        try:
+            v = kind(tok)
+        except ValueError:
+            raise PanoError("sweep", f"{tok!r} is not a number in {text!r}") from None
+        if v <= 0:
+            raise PanoError("sweep", f"{tok!r} must be positive in {text!r}")
+        vals.append(v)
+    if not vals:
+        raise PanoError("sweep", f"empty grid {text!r}")
+    return vals
+
+
+def plot_sweep(points: list[SweepPoint], path: Path) -> None:
+    from evaluation.report import _plt
+
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    pts = [p for p in points if p.psnr is not None]
+    for ax, attr, flag, xlabel in (
+        (axes[0], "train_seconds", "pareto_time", "training seconds"),
+        (axes[1], "fps", "pareto_fps", "render FPS (evaluation size)"),
+    ):
+        xs = [getattr(p, attr) for p in pts]
+        ys = [p.psnr for p in pts]
+        ax.scatter(xs, ys, c="C0", s=25, zorder=3)
+        front = sorted((getattr(p, attr), p.psnr) for p in pts if getattr(p, flag))
+        if front:
+            ax.plot(*zip(*front), "C3-", lw=1.5, zorder=2, label="Pareto front")
+        for p in pts:
+            ax.annotate(p.label, (getattr(p, attr), p.psnr), fontsize=6, xytext=(3, 3), textcoords="offset points")
+        if xs and min(xs) > 0 and max(xs) / min(xs) > 20:
+            ax.set_xscale("log")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("test PSNR (dB)")
+        ax.grid(alpha=0.3)
+        if front:
+            ax.legend(fontsize=8)
+    axes[0].set_title("accuracy vs training time")
+    axes[1].set_title("accuracy vs render speed")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def sweep_table(points: list[SweepPoint]) -> str:
+    lines = ["| iterations | train height | Gaussian cap | PSNR (dB) | SSIM | train s | FPS | Gaussians | Pareto (time / FPS) |",
+             "|---|---|---|---|---|---|---|---|---|"]
+
+    def f(v, d):
+        return "—" if v is None else f"{v:.{d}f}"
+
+    for p in sorted(points, key=lambda p: (p.train_seconds or 0)):
+        lines.append(
+            f"| {p.iterations} | {p.height} | {p.cap if p.cap is not None else 'default'} | {f(p.psnr, 2)} | "
+            f"{f(p.ssim, 3)} | {f(p.train_seconds, 1)} | {f(p.fps, 2)} | {p.num_gaussians or '—'} | "
+            f"{'★' if p.pareto_time else '·'} / {'★' if p.pareto_fps else '·'} |"
+        )
+    return "\n".join(lines)
+
+
+def run_sweep(scene, base_dir: Path, base_config: dict, iterations: list[int], heights: list[int],
+              caps: list[int | None], eval_height: int | None = None, out_dir: Path | None = None,
+              log=print) -> dict:
+    """Train/evaluate every grid point; all points are evaluated at one size (default: the largest
+    training height) so their PSNR and FPS compare. Writes sweep.{md,json,png}."""
+    from pipeline.engine import Engine
+    from pipeline.registry import build_registry
+
+    out_dir = Path(out_dir) if out_dir is not None else base_dir / "sweep"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    reg = build_registry()
+    fields = train_param_fields()
+    res_name = next((n for n in _PARAM_ALIASES["resolution"] if n in fields), None)
+    if res_name is None:
+        raise PanoError("sweep", f"the train stage has no resolution parameter (looked for {_PARAM_ALIASES['resolution']})")
+    eh = int(eval_height or max(heights))
+    Engine(scene, base_dir, reg, base_config, config_source="config").run(until="align")
+    points = []
+    for it, h, cap in product(iterations, heights, caps):
+        p = SweepPoint(it, h, cap)
+        # cap None: leave the train stage's own (preset) cap in place
+        wanted = {"iterations": it} | ({"max_gaussians": cap} if cap is not None else {})
+        overrides, missing = map_train_overrides(wanted, fields)
+        if missing:
+            raise PanoError("sweep", f"the train stage has no parameter for {missing}")
+        overrides[res_name] = resolution_value(h, fields[res_name])
+        cfg = merged_config(base_config, overrides, {"resolution": [eh, 2 * eh], "fps_repeats": 3})
+        log(f"sweep: {p.label} → {out_dir / p.label}")
+        s = run_variant(scene, base_dir, out_dir / p.label, cfg)
+        p.psnr, p.ssim, p.ws_psnr = s["psnr"], s["ssim"], s["ws_psnr"]
+        p.train_seconds, p.fps, p.num_gaussians, p.dir = s["train_seconds"], s["fps"], s["num_gaussians"], s["dir"]
+        points.append(p)
+    done = [p for p in points if p.psnr is not None]
+    for p, a, b in zip(done, pareto_mask([p.psnr for p in done], [p.train_seconds for p in done]),
+                       pareto_mask([p.psnr for p in done], [-p.fps for p in done])):
+        p.pareto_time, p.pareto_fps = a, b
+    table = sweep_table(points)
+    plot_sweep(points, out_dir / "sweep.png")
+    md = [f"# Sweep: {scene.name}", "",
+          f"Every point evaluated at {eh}×{2 * eh}; ★ = on the Pareto front (no other point is both "
+          "more accurate and cheaper).", "", table, "", "![sweep](sweep.png)", ""]
+    (out_dir / "sweep.md").write_text("\n".join(md))
+    (out_dir / "sweep.json").write_text(json.dumps(
+        {"scene": scene.name, "eval_resolution": [eh, 2 * eh], "points": [asdict(p) | {"label": p.label} for p in points]},
+        indent=1, default=_json_default))
+    return {"table": table, "markdown": out_dir / "sweep.md", "json": out_dir / "sweep.json",
+            "chart": out_dir / "sweep.png", "points": points}

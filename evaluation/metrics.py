@@ -1,0 +1,305 @@
+"""Image and depth metrics for rendered panoramas.
+
+Images are float RGB in [0, 1], [H, W, 3] (numpy or torch). Every function
+returns a Python float so results drop straight into pydantic models.
+
+- PSNR: 10·log10(1 / MSE) over all pixels and channels.
+- SSIM: Gaussian window 11×11, σ = 1.5, C1 = 0.01², C2 = 0.03², zero padding
+  ("same" size), averaged over pixels and channels: exactly the SSIM of the
+  3DGS code base, so numbers compare with papers that use it.
+- WS-PSNR: PSNR with every row weighted by cos(latitude) of its centre
+  (Sun et al. 2017), because an equirectangular image over-samples the poles.
+- LPIPS (v0.1, AlexNet or VGG16 backbone, written here in torch): needs
+  weights on disk; `load_lpips` returns the model or raises LpipsUnavailable
+  with the reason, so callers report "unavailable: <reason>", never 0.
+- Depth: AbsRel and RMSE over pixels whose ground truth is finite and > 0.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+__all__ = [
+    "psnr",
+    "ssim",
+    "ws_psnr",
+    "latitude_weights",
+    "error_map",
+    "depth_metrics",
+    "gaussian_window",
+    "LPIPS",
+    "LpipsUnavailable",
+    "load_lpips",
+    "find_lpips_weights",
+    "LPIPS_ENV",
+    "LPIPS_DEFAULT_DIR",
+]
+
+# Clamp for perfect reconstructions: PSNR of identical images is reported as
+# 10·log10(1/1e-10) = 100 dB instead of inf, which JSON cannot hold.
+_MIN_MSE = 1e-10
+
+
+def _np(x) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x, dtype=np.float64)
+
+
+def _check_pair(a: np.ndarray, b: np.ndarray) -> None:
+    if a.shape != b.shape:
+        raise ValueError(f"image shapes differ: {a.shape} vs {b.shape}")
+    if a.ndim not in (2, 3):
+        raise ValueError(f"expected [H,W] or [H,W,C], got shape {a.shape}")
+
+
+def psnr(pred, gt, max_val: float = 1.0) -> float:
+    a, b = _np(pred), _np(gt)
+    _check_pair(a, b)
+    mse = float(np.mean((a - b) ** 2))
+    return 10.0 * math.log10(max_val**2 / max(mse, _MIN_MSE))
+
+
+def latitude_weights(height: int) -> np.ndarray:
+    """[H] cos(latitude) of each row centre of an equirectangular image."""
+    theta = (0.5 - (np.arange(height) + 0.5) / height) * np.pi
+    return np.cos(theta)
+
+
+def ws_psnr(pred, gt, max_val: float = 1.0) -> float:
+    """Weighted-to-spherically-uniform PSNR for equirectangular images."""
+    a, b = _np(pred), _np(gt)
+    _check_pair(a, b)
+    err = (a - b) ** 2
+    if err.ndim == 3:
+        err = err.mean(axis=2)
+    w = latitude_weights(a.shape[0])[:, None]
+    wmse = float((err * w).sum() / (w.sum() * a.shape[1]))
+    return 10.0 * math.log10(max_val**2 / max(wmse, _MIN_MSE))
+
+
+def gaussian_window(size: int = 11, sigma: float = 1.5) -> np.ndarray:
+    """Normalised 1D Gaussian of `size` taps."""
+    x = np.arange(size, dtype=np.float64) - (size - 1) / 2.0
+    g = np.exp(-(x**2) / (2.0 * sigma**2))
+    return g / g.sum()
+
+
+def ssim(pred, gt, window: int = 11, sigma: float = 1.5, max_val: float = 1.0) -> float:
+    """Mean SSIM, 3DGS style (Gaussian window, zero padding, same-size maps)."""
+    a, b = _np(pred), _np(gt)
+    _check_pair(a, b)
+    if a.ndim == 2:
+        a, b = a[..., None], b[..., None]
+    x = torch.from_numpy(a).permute(2, 0, 1)[None]  # [1,C,H,W] float64
+    y = torch.from_numpy(b).permute(2, 0, 1)[None]
+    c = x.shape[1]
+    g = torch.from_numpy(gaussian_window(window, sigma))
+    k = (g[:, None] * g[None, :]).expand(c, 1, window, window).contiguous()
+    pad = window // 2
+
+    def blur(t):
+        return F.conv2d(t, k, padding=pad, groups=c)
+
+    mu_x, mu_y = blur(x), blur(y)
+    sxx = blur(x * x) - mu_x**2
+    syy = blur(y * y) - mu_y**2
+    sxy = blur(x * y) - mu_x * mu_y
+    c1, c2 = (0.01 * max_val) ** 2, (0.03 * max_val) ** 2
+    m = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
+    return float(m.mean())
+
+
+def error_map(pred, gt) -> np.ndarray:
+    """[H,W] mean absolute error over channels, in [0, 1]."""
+    a, b = _np(pred), _np(gt)
+    _check_pair(a, b)
+    e = np.abs(a - b)
+    return e.mean(axis=2) if e.ndim == 3 else e
+
+
+def depth_metrics(pred, gt, mask=None) -> dict[str, float | int]:
+    """AbsRel = mean |d − d*| / d*, RMSE = sqrt(mean (d − d*)²) over valid ground truth.
+
+    Valid: ground truth finite and > 0 (and `mask` where given). Returns NaN
+    metrics with count 0 when nothing is valid.
+    """
+    d, g = _np(pred), _np(gt)
+    if d.shape != g.shape:
+        raise ValueError(f"depth shapes differ: {d.shape} vs {g.shape}")
+    valid = np.isfinite(g) & (g > 0) & np.isfinite(d)
+    if mask is not None:
+        valid &= _np(mask).astype(bool)
+    n = int(valid.sum())
+    if n == 0:
+        return {"abs_rel": float("nan"), "rmse": float("nan"), "count": 0}
+    diff = d[valid] - g[valid]
+    return {
+        "abs_rel": float(np.mean(np.abs(diff) / g[valid])),
+        "rmse": float(np.sqrt(np.mean(diff**2))),
+        "count": n,
+    }
+
+
+# -- LPIPS ----------------------------------------------------------------------
+LPIPS_ENV = "PANO_PIPE_LPIPS_WEIGHTS"
+LPIPS_DEFAULT_DIR = Path.home() / ".cache" / "pano-pipe" / "lpips"
+
+# File names as published: torchvision's ImageNet backbones and the lpips
+# package's v0.1 linear heads (github.com/richzhang/PerceptualSimilarity).
+_BACKBONE_FILES = {"alex": "alexnet-owt-7be5be79.pth", "vgg": "vgg16-397923af.pth"}
+_LIN_FILES = {"alex": "alex.pth", "vgg": "vgg.pth"}
+_CHANNELS = {"alex": (64, 192, 384, 256, 256), "vgg": (64, 128, 256, 512, 512)}
+
+
+class LpipsUnavailable(RuntimeError):
+    """LPIPS cannot be computed; str(e) is the reason shown to users."""
+
+
+def _alexnet_features() -> torch.nn.Sequential:
+    # torchvision's alexnet().features, same indices so its state dict loads.
+    return torch.nn.Sequential(
+        torch.nn.Conv2d(3, 64, 11, 4, 2), torch.nn.ReLU(), torch.nn.MaxPool2d(3, 2),
+        torch.nn.Conv2d(64, 192, 5, padding=2), torch.nn.ReLU(), torch.nn.MaxPool2d(3, 2),
+        torch.nn.Conv2d(192, 384, 3, padding=1), torch.nn.ReLU(),
+        torch.nn.Conv2d(384, 256, 3, padding=1), torch.nn.ReLU(),
+        torch.nn.Conv2d(256, 256, 3, padding=1), torch.nn.ReLU(), torch.nn.MaxPool2d(3, 2),
+    )  # fmt: skip
+
+
+def _vgg16_features() -> torch.nn.Sequential:
+    layers: list[torch.nn.Module] = []
+    cin = 3
+    for v in (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M"):
+        if v == "M":
+            layers.append(torch.nn.MaxPool2d(2, 2))
+        else:
+            layers += [torch.nn.Conv2d(cin, v, 3, padding=1), torch.nn.ReLU()]
+            cin = v
+    return torch.nn.Sequential(*layers)
+
+
+# Where LPIPS taps the backbone (after these ReLUs), as in lpips.pretrained_networks.
+_SLICES = {"alex": (2, 5, 8, 10, 12), "vgg": (4, 9, 16, 23, 30)}
+
+
+class LPIPS(torch.nn.Module):
+    """LPIPS v0.1: unit-normalised backbone features, squared differences, learned 1×1 weights."""
+
+    def __init__(self, net: str = "alex"):
+        super().__init__()
+        if net not in _SLICES:
+            raise ValueError(f"LPIPS backbone must be 'alex' or 'vgg', not {net!r}")
+        self.net_name = net
+        self.features = _alexnet_features() if net == "alex" else _vgg16_features()
+        self.lins = torch.nn.ModuleList(torch.nn.Conv2d(c, 1, 1, bias=False) for c in _CHANNELS[net])
+        self.register_buffer("shift", torch.tensor([-0.030, -0.088, -0.188]).view(1, 3, 1, 1))
+        self.register_buffer("scale", torch.tensor([0.458, 0.448, 0.450]).view(1, 3, 1, 1))
+        self.requires_grad_(False)
+        self.eval()
+
+    def load_weights(self, backbone: dict, lin: dict) -> None:
+        feats = {k.removeprefix("features."): v for k, v in backbone.items() if k.startswith("features.")}
+        self.features.load_state_dict(feats)
+        lins = {}
+        for i in range(5):
+            key = f"lin{i}.model.1.weight"
+            if key not in lin:
+                raise KeyError(f"missing {key}")
+            lins[f"{i}.weight"] = lin[key]
+        self.lins.load_state_dict(lins)
+
+    def _taps(self, x: torch.Tensor) -> list[torch.Tensor]:
+        out, start = [], 0
+        for end in _SLICES[self.net_name]:
+            for layer in self.features[start:end]:
+                x = layer(x)
+            out.append(x)
+            start = end
+        return out
+
+    @torch.no_grad()
+    def forward(self, pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+        """pred, gt: [B,3,H,W] in [0,1]; returns [B] distances."""
+        a = ((pred * 2 - 1) - self.shift) / self.scale
+        b = ((gt * 2 - 1) - self.shift) / self.scale
+        total = torch.zeros(pred.shape[0], dtype=pred.dtype)
+        for fa, fb, lin in zip(self._taps(a), self._taps(b), self.lins):
+            fa = fa / (fa.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+            fb = fb / (fb.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+            total = total + lin((fa - fb) ** 2).mean(dim=(1, 2, 3))
+        return total
+
+    def distance(self, pred, gt) -> float:
+        """LPIPS of two [H,W,3] images in [0,1]."""
+        a = torch.as_tensor(_np(pred), dtype=torch.float32).permute(2, 0, 1)[None]
+        b = torch.as_tensor(_np(gt), dtype=torch.float32).permute(2, 0, 1)[None]
+        return float(self(a, b)[0])
+
+
+@dataclass
+class LpipsFiles:
+    backbone: Path
+    lin: Path
+
+
+def find_lpips_weights(net: str = "alex", explicit: str | Path | None = None) -> LpipsFiles:
+    """Locate the backbone and linear-head weights, or raise LpipsUnavailable saying where it looked.
+
+    Order: `explicit` (a parameter), then $PANO_PIPE_LPIPS_WEIGHTS, then
+    ~/.cache/pano-pipe/lpips/. Each may be a folder holding the two published
+    files (alexnet-owt-7be5be79.pth + alex.pth, or vgg16-397923af.pth + vgg.pth),
+    or one .pth holding both state dicts merged. The backbone is also looked
+    for in torch hub's checkpoint cache.
+    """
+    if net not in _LIN_FILES:
+        raise LpipsUnavailable(f"unknown LPIPS backbone {net!r} (use 'alex' or 'vgg')")
+    candidates: list[tuple[str, Path]] = []
+    if explicit:
+        candidates.append(("parameter lpips_weights", Path(explicit).expanduser()))
+    if os.environ.get(LPIPS_ENV):
+        candidates.append((f"${LPIPS_ENV}", Path(os.environ[LPIPS_ENV]).expanduser()))
+    candidates.append(("default folder", LPIPS_DEFAULT_DIR))
+    hub = Path(torch.hub.get_dir()) / "checkpoints" / _BACKBONE_FILES[net]
+    looked = []
+    for what, p in candidates:
+        if p.is_file():
+            return LpipsFiles(p, p)
+        if p.is_dir():
+            lin = p / _LIN_FILES[net]
+            bb = p / _BACKBONE_FILES[net]
+            if not bb.is_file() and hub.is_file():
+                bb = hub
+            if lin.is_file() and bb.is_file():
+                return LpipsFiles(bb, lin)
+            missing = [f.name for f in (bb, lin) if not f.is_file()]
+            looked.append(f"{p} ({what}) lacks {' and '.join(missing)}")
+        else:
+            looked.append(f"{p} ({what}) does not exist")
+        if what != "default folder":
+            # A location the user named explicitly and that fails is the answer.
+            break
+    raise LpipsUnavailable(
+        f"no {net} LPIPS weights: {'; '.join(looked)}; set ${LPIPS_ENV} to a folder holding "
+        f"{_BACKBONE_FILES[net]} and {_LIN_FILES[net]}"
+    )
+
+
+def load_lpips(net: str = "alex", weights: str | Path | None = None) -> LPIPS:
+    """An LPIPS model with weights loaded, or LpipsUnavailable(reason)."""
+    files = find_lpips_weights(net, weights)
+    try:
+        backbone = torch.load(files.backbone, map_location="cpu", weights_only=True)
+        lin = backbone if files.lin == files.backbone else torch.load(files.lin, map_location="cpu", weights_only=True)
+        model = LPIPS(net)
+        model.load_weights(backbone, lin)
+    except Exception as e:  # corrupt or mismatched files: say which and why
+        raise LpipsUnavailable(f"could not load LPIPS weights from {files.backbone}: {type(e).__name__}: {e}") from None
+    return model

@@ -1,0 +1,47 @@
+"""Artifact of the `evaluate` stage: metrics on the held-out views and render speed."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, Field
+
+
+class ViewMetrics(BaseModel):
+    view: str
+    split: Literal["train", "test"]
+    psnr: float
+    ssim: float
+    ws_psnr: float = Field(description="PSNR with rows weighted by cos(latitude).")
+    lpips: float | None = Field(default=None, description="None when LPIPS is unavailable (see lpips_reason).")
+    depth_abs_rel: float | None = Field(default=None, description="Where the scene has ground-truth depth.")
+    depth_rmse: float | None = Field(default=None, description="Metres, where the scene has ground-truth depth.")
+    depth_valid_pixels: int | None = None
+    render_seconds: float = Field(description="Wall time of this view's render.")
+    gt: str = Field(description="Ground truth resized to the evaluation size (PNG).")
+    render: str = Field(description="The rendered panorama (PNG).")
+    error: str = Field(description="Per-pixel |render − gt| colour map (PNG).")
+    depth: str = Field(description="Rendered expected depth, colour mapped (PNG).")
+    depth_npy: str = Field(description="Rendered expected depth in metres, float32 [H,W] (.npy).")
+
+
+class EvaluateOutput(BaseModel):
+    views: list[ViewMetrics]
+    mean: dict[str, float] = Field(
+        description="Metric -> mean over the evaluated views (psnr, ssim, ws_psnr, and lpips / depth_* where available)."
+    )
+    csv: str = Field(description="metrics.csv: one row per view plus a 'mean' row.")
+    split: Literal["test", "train"] = Field(
+        description="'test' normally; 'train' when the scene has no test views (then the numbers are fit, not generalisation)."
+    )
+    on_train_views: bool = Field(description="True when evaluated on training views for lack of test views.")
+    resolution: tuple[int, int] = Field(description="Evaluation (height, width).")
+    lpips_available: bool
+    lpips_reason: str | None = Field(default=None, description="Why LPIPS is unavailable, when it is.")
+    lpips_net: str | None = None
+    fps: float = Field(description="Median frames per second of a full-panorama render at `resolution`.")
+    fps_repeats: int
+    backend: str = Field(description="Splatting backend used for rendering.")
+    device: str
+    threads: int = Field(description="torch.get_num_threads() while rendering.")
+    num_gaussians: int

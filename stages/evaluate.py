@@ -1,0 +1,254 @@
+"""evaluate: render every held-out view of the trained model and measure it.
+
+Per view: PSNR, SSIM, WS-PSNR, LPIPS (when weights are on the machine, else
+reported unavailable with the reason), depth AbsRel / RMSE against ground
+truth where the scene has it; render speed as the median FPS of repeated
+full-panorama renders. Writes renders/, errors/, depth/, gt/ PNGs and
+metrics.csv. With no test views it evaluates the training views and says so
+(artifact `split: train`, a warning). See docs/evaluation.md.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import statistics
+import time
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from evaluation import metrics as M
+from evaluation.model_io import equirect_camera, load_model, render_pose
+from evaluation.visuals import depth_rgb, error_rgb
+from panogeom.images import read_rgb, write_rgb
+from pipeline.errors import PanoError
+from pipeline.stage import StageContext
+from schemas.evaluate import EvaluateOutput, ViewMetrics
+from schemas.scene import Scene, View
+
+Output = EvaluateOutput
+
+METRIC_KEYS = ("psnr", "ssim", "ws_psnr", "lpips", "depth_abs_rel", "depth_rmse")
+
+
+class Params(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    resolution: Literal["train", "image"] | tuple[int, int] = Field(
+        default="train",
+        description="Evaluation size: 'train' = the training (H, W) (ground truth area-downsampled to it), "
+        "'image' = each test image's own size, or an explicit [H, W].",
+    )
+    backend: str | None = Field(default=None, description="Splatting backend (None: the renderer's default).")
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    threads: int | None = Field(default=None, ge=1, description="torch threads while rendering (None: unchanged).")
+    lpips: bool = Field(default=True, description="Compute LPIPS when weights are found.")
+    lpips_net: Literal["alex", "vgg"] = "alex"
+    lpips_weights: str | None = Field(
+        default=None,
+        description="Folder or .pth with LPIPS weights; default $PANO_PIPE_LPIPS_WEIGHTS, then ~/.cache/pano-pipe/lpips/.",
+    )
+    fps_repeats: int = Field(default=5, ge=1, description="Renders timed for the median FPS.")
+    background: tuple[float, float, float] | None = Field(
+        default=None, description="Background colour behind the splats (None: the one training used)."
+    )
+
+    @field_validator("resolution")
+    @classmethod
+    def _positive(cls, v):
+        if isinstance(v, tuple) and (v[0] < 2 or v[1] < 2):
+            raise ValueError(f"an explicit resolution must be [H, W] with both >= 2, got {list(v)}")
+        return v
+
+
+def skip_reason(scene: Scene, params: Params) -> str | None:
+    return None  # skipped only when its required input (train) is
+
+
+# ----------------------------------------------------------------------------- pure helpers
+
+
+def view_metrics(render: np.ndarray, gt: np.ndarray, lpips_model=None) -> dict[str, float | None]:
+    """PSNR / SSIM / WS-PSNR (and LPIPS with a model) of one rendered panorama."""
+    return {
+        "psnr": M.psnr(render, gt),
+        "ssim": M.ssim(render, gt),
+        "ws_psnr": M.ws_psnr(render, gt),
+        "lpips": lpips_model.distance(render, gt) if lpips_model is not None else None,
+    }
+
+
+def mean_metrics(rows: list[dict]) -> dict[str, float]:
+    """Mean of each metric over the rows that have it (None / NaN left out; a metric no row has is absent)."""
+    out: dict[str, float] = {}
+    for k in METRIC_KEYS:
+        vals = [r[k] for r in rows if r.get(k) is not None and not math.isnan(r[k])]
+        if vals:
+            out[k] = float(np.mean(vals))
+    return out
+
+
+def write_csv(path: Path, rows: list[dict], mean: dict[str, float]) -> None:
+    cols = ["view", "split", *METRIC_KEYS, "render_seconds"]
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(cols)
+        for r in rows:
+            w.writerow([_cell(r.get(c)) for c in cols])
+        w.writerow(["mean", "", *[_cell(mean.get(k)) for k in METRIC_KEYS], ""])
+
+
+def _cell(v) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    return str(v)
+
+
+def eval_size(params: Params, train_resolution, image_shape: tuple[int, int]) -> tuple[int, int]:
+    if params.resolution == "train":
+        return int(train_resolution[0]), int(train_resolution[1])
+    if params.resolution == "image":
+        return int(image_shape[0]), int(image_shape[1])
+    h, w = params.resolution
+    return int(h), int(w)
+
+
+def load_gt_depth(path: Path, size: tuple[int, int]) -> np.ndarray:
+    """Ground-truth distance along the ray (.npy metres, or .png uint16 mm) at (H, W); nearest
+    resampling so depth edges are not blended into values no surface has."""
+    if path.suffix == ".npy":
+        d = np.load(path).astype(np.float32)
+    else:
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise PanoError(path, "unreadable depth image")
+        d = raw.astype(np.float32) / 1000.0
+    if d.ndim != 2:
+        raise PanoError(path, f"ground-truth depth must be [H,W], got shape {list(d.shape)}")
+    if d.shape != tuple(size):
+        d = cv2.resize(d, (size[1], size[0]), interpolation=cv2.INTER_NEAREST)
+    return d
+
+
+def train_background(train_dir: Path) -> tuple[float, float, float] | None:
+    """The background the model was trained against (train artifact's meta.params), if recorded."""
+    import json
+
+    try:
+        bg = json.loads((train_dir / "artifact.json").read_text())["meta"]["params"].get("background")
+        return tuple(float(x) for x in bg) if bg is not None and len(bg) == 3 else None
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+
+
+# ----------------------------------------------------------------------------- stage
+
+
+def run(ctx: StageContext) -> EvaluateOutput:
+    p: Params = ctx.params
+    train = ctx.inputs["train"]
+    tdata = train.data
+    views: list[View] = ctx.scene.manifest.test_views()
+    split = "test"
+    if not views:
+        views = ctx.scene.manifest.train_views()
+        split = "train"
+        ctx.warn("the scene has no test views: evaluating on the TRAINING views (a fit, not generalisation)")
+
+    background = p.background if p.background is not None else train_background(train.dir)
+    device = "cuda" if p.device == "cuda" or (p.device == "auto" and torch.cuda.is_available()) else "cpu"
+    old_threads = torch.get_num_threads()
+    if p.threads:
+        torch.set_num_threads(p.threads)
+    try:
+        g = load_model(train.path(tdata.ply), device=device)
+        lpips_model, lpips_reason = None, None
+        if p.lpips:
+            try:
+                lpips_model = M.load_lpips(p.lpips_net, p.lpips_weights)
+            except M.LpipsUnavailable as e:
+                lpips_reason = str(e)
+                ctx.warn(f"LPIPS unavailable: {lpips_reason}")
+        else:
+            lpips_reason = "disabled by parameter evaluate.lpips=false"
+
+        out = ctx.out_dir
+        for sub in ("renders", "errors", "depth", "gt"):
+            (out / sub).mkdir(parents=True, exist_ok=True)
+        rows: list[dict] = []
+        results: list[ViewMetrics] = []
+        size = None
+        backend = p.backend or "?"
+        for v in ctx.track(views, "evaluate: views", total=len(views)):
+            img_path = ctx.scene.image_path(v)
+            native = cv2.imread(str(img_path), cv2.IMREAD_UNCHANGED)
+            if native is None:
+                raise PanoError(img_path, "unreadable image")
+            size = eval_size(p, tdata.resolution, native.shape[:2])
+            gt = read_rgb(img_path, size=size)
+            r = render_pose(g, v.pose_matrix, equirect_camera(*size), backend=p.backend, background=background)
+            backend = r.backend
+            m = view_metrics(r.image, gt, lpips_model)
+            row = {"view": v.name, "split": split, **m, "render_seconds": r.seconds}
+            gt_depth_path = ctx.scene.gt_depth_path(v)
+            dm = None
+            if gt_depth_path is not None and gt_depth_path.is_file():
+                dm = M.depth_metrics(r.depth, load_gt_depth(gt_depth_path, size))
+                row["depth_abs_rel"] = dm["abs_rel"] if dm["count"] else None
+                row["depth_rmse"] = dm["rmse"] if dm["count"] else None
+            names = {k: f"{k}/{v.name}.png" for k in ("gt", "renders", "errors", "depth")}
+            write_rgb(out / names["gt"], gt)
+            write_rgb(out / names["renders"], r.image)
+            write_rgb(out / names["errors"], error_rgb(M.error_map(r.image, gt)))
+            write_rgb(out / names["depth"], depth_rgb(r.depth))
+            np.save(out / "depth" / f"{v.name}.npy", r.depth.astype(np.float32))
+            rows.append(row)
+            results.append(
+                ViewMetrics(
+                    view=v.name, split=split, psnr=m["psnr"], ssim=m["ssim"], ws_psnr=m["ws_psnr"], lpips=m["lpips"],
+                    depth_abs_rel=row.get("depth_abs_rel"), depth_rmse=row.get("depth_rmse"),
+                    depth_valid_pixels=dm["count"] if dm else None, render_seconds=r.seconds,
+                    gt=names["gt"], render=names["renders"], error=names["errors"], depth=names["depth"],
+                    depth_npy=f"depth/{v.name}.npy",
+                )
+            )
+
+        # Speed: the first view again, timed; its first render above was the warm-up.
+        pose = views[0].pose_matrix
+        cam = equirect_camera(*size)
+        times = []
+        for _ in range(p.fps_repeats):
+            t0 = time.perf_counter()
+            render_pose(g, pose, cam, backend=p.backend, background=background)
+            times.append(time.perf_counter() - t0)
+        fps = 1.0 / max(statistics.median(times), 1e-9)
+        threads = torch.get_num_threads()
+    finally:
+        torch.set_num_threads(old_threads)
+
+    mean = mean_metrics(rows)
+    write_csv(out / "metrics.csv", rows, mean)
+    return EvaluateOutput(
+        views=results,
+        mean=mean,
+        csv="metrics.csv",
+        split=split,
+        on_train_views=split == "train",
+        resolution=size,
+        lpips_available=lpips_model is not None,
+        lpips_reason=lpips_reason,
+        lpips_net=p.lpips_net if lpips_model is not None else None,
+        fps=fps,
+        fps_repeats=p.fps_repeats,
+        backend=backend,
+        device=device,
+        threads=threads,
+        num_gaussians=len(g),
+    )

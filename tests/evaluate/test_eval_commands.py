@@ -1,0 +1,61 @@
+"""`pano-pipe report` and `pano-pipe render` as typer commands on a prepared run folder."""
+
+from __future__ import annotations
+
+import cv2
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from evalhelpers import run_evaluate, write_train_artifact
+from evaluation.commands import ablate_command, render_command, report_command, sweep_command
+
+app = typer.Typer()
+app.command("report")(report_command)
+app.command("render")(render_command)
+app.command("ablate")(ablate_command)
+app.command("sweep")(sweep_command)
+
+
+@pytest.fixture(scope="module")
+def run(sim_scene, sim_model, tmp_path_factory):
+    pytest.importorskip("stages.train", reason="the train stage is not in this checkout yet")
+    run = tmp_path_factory.mktemp("cmdrun") / "run"
+    write_train_artifact(run, sim_model, resolution=(16, 32))
+    run_evaluate(sim_scene, run, fps_repeats=1, lpips=False)
+    return run
+
+
+def test_report_command(run, sim_scene):
+    r = CliRunner().invoke(app, ["report", str(sim_scene.root), "--out", str(run)])
+    assert r.exit_code == 0, r.output
+    html = (run / "report" / "report.html").read_text()
+    assert html.count("<img") == 7 and "Stage durations" in html
+    md = (run / "report" / "report.md").read_text()
+    assert "| now |" in md  # engine states joined in
+
+
+def test_report_command_without_run_folder(sim_scene, tmp_path):
+    pytest.importorskip("stages.train", reason="the train stage is not in this checkout yet")
+    r = CliRunner().invoke(app, ["report", str(sim_scene.root), "--out", str(tmp_path / "nope")])
+    assert r.exit_code != 0 and "no run folder" in str(r.exception)
+
+
+def test_render_command(run, sim_scene):
+    r = CliRunner().invoke(app, ["render", str(sim_scene.root), "--out", str(run), "--frames", "3",
+                                 "--perspective", "--height", "12"])
+    assert r.exit_code == 0, r.output
+    video = run / "render" / "flythrough-train-persp.mp4"
+    cap = cv2.VideoCapture(str(video))
+    assert cap.get(cv2.CAP_PROP_FRAME_COUNT) == 3 and cap.get(cv2.CAP_PROP_FRAME_HEIGHT) == 12
+    r = CliRunner().invoke(app, ["render", str(sim_scene.root), "--out", str(run), "--frames", "2",
+                                 "--path", "test_00"])
+    assert r.exit_code == 0, r.output
+    cap = cv2.VideoCapture(str(run / "render" / "flythrough-test_00-pano.mp4"))
+    assert (cap.get(cv2.CAP_PROP_FRAME_WIDTH), cap.get(cv2.CAP_PROP_FRAME_HEIGHT)) == (32, 16)
+
+
+def test_render_command_needs_training(sim_scene, tmp_path):
+    pytest.importorskip("stages.train", reason="the train stage is not in this checkout yet")
+    r = CliRunner().invoke(app, ["render", str(sim_scene.root), "--out", str(tmp_path)])
+    assert r.exit_code != 0 and "train first" in str(r.exception)
