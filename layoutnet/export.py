@@ -94,5 +94,5 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path, opset: int = 17) 
     """Checkpoint → ONNX, checked; returns the max onnxruntime-torch difference."""
     if opset < 17:  # before the (slow) load
         raise PanoError("--opset", f"opset {opset} is too old: use 17 or newer")
-    torch.set_grad_enabled(False)
-    return export_onnx(load_checkpoint(checkpoint), out, opset=opset)
+    with torch.no_grad():  # a global switch would leak into the caller's process
+        return export_onnx(load_checkpoint(checkpoint), out, opset=opset)
