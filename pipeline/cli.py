@@ -177,6 +177,43 @@ def import_nerfstudio_command(
     console.print(f"wrote {path}")
 
 
+@bench_app.command("render")
+def bench_render(
+    quick: Annotated[bool, typer.Option(help="A small grid (128x256 and 512x1024; 20k and 100k).")] = False,
+    resolutions: Annotated[str, typer.Option(help="HxW list.")] = "128x256,256x512,512x1024",
+    counts: Annotated[str, typer.Option(help="Gaussian counts.")] = "20000,100000,300000",
+    backends: Annotated[str, typer.Option(help="cpp,torch")] = "cpp,torch",
+    repeats: Annotated[int, typer.Option(help="Timed repeats (median).")] = 3,
+    out_json: Annotated[Path, typer.Option(help="JSON result.")] = Path("docs/bench_render.json"),
+    out_md: Annotated[Path, typer.Option(help="Markdown table.")] = Path("docs/bench_render.md"),
+) -> None:
+    """Renderer speed, memory, cubemap baseline and tangent-plane accuracy, per backend."""
+    from splatting.bench import main as bench_main
+
+    bench_main(
+        [
+            "--resolutions", resolutions, "--counts", counts, "--backends", backends,
+            "--repeats", str(repeats), "--out-json", str(out_json), "--out-md", str(out_md),
+            *(["--quick"] if quick else []),
+        ]
+    )
+
+
+@bench_app.command("pipeline")
+def bench_pipeline_command(
+    scene: Annotated[Optional[Path], typer.Argument(help="Scene (default: a fresh `demo` scene).")] = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    out_json: Annotated[Path, typer.Option(help="JSON result.")] = Path("docs/bench_pipeline.json"),
+    out_md: Annotated[Path, typer.Option(help="Markdown table.")] = Path("docs/bench_pipeline.md"),
+) -> None:
+    """Time a full run and a second, cached run of the same scene."""
+    from pipeline.benchmarks import bench_pipeline
+
+    cfg, _ = load_config(config, set_)
+    bench_pipeline(scene, cfg, out_md, out_json)
+
+
 def user_errors(fn):
     """Commands whose ValueErrors are about their arguments: report them as bad input (exit 2)."""
     import functools

@@ -1,0 +1,659 @@
+// CPU kernels of pano-pipe's 360° Gaussian splatting renderer (see docs/splatting.md).
+// Per-Gaussian packed parameters (PACK = 20 per row), built in splatting/project.py:
+//   a1[3] a2[3] n[3] uc vc Q00 Q01 Q11 opacity rgb[3] dist tau
+// A pixel with ray direction d: h = (a1·d, a2·d), c = n·d (> C_MIN),
+// u = h0/c - uc, v = h1/c - vc, power = ½(Q00 u² + Q11 v²) + Q01 u v,
+// skipped unless power <= tau; alpha = min(o·exp(-power), 0.99);
+// front-to-back blending, a pixel stops once its transmittance falls below T_MIN.
+#include <torch/extension.h>
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <limits>
+#include <vector>
+
+#include "project_cpu.h"
+
+namespace {
+
+constexpr int PACK = 20;
+constexpr double ALPHA_MAX = 0.99;
+constexpr double T_MIN = 1e-4;
+constexpr double C_MIN = 1e-6;
+constexpr int MAX_TILE = 32;
+
+inline int nthreads() { return std::max(1, at::get_num_threads()); }
+// Small jobs run on one thread: waking an OpenMP team costs more than they do
+// (and far more on a loaded machine).
+inline int threads_for(int64_t npairs, int ts) {
+  return (npairs * ts * ts < 262144) ? 1 : nthreads();
+}
+
+// Tile lists: every Gaussian listed in `order` (front to back) is appended
+// to each tile its pixel box touches. bbox rows: r0, r1 (inclusive), c0, ncols
+// (columns wrap modulo W).
+// Number of tile columns, as one circular run from tile c0/ts: columns [c0, c0+n) wrap
+// modulo W, and W need not be a multiple of ts, so the wrapped part restarts at tile 0.
+inline int64_t tile_cols(const int32_t* b, int64_t W, int64_t ts, int64_t ntx) {
+  const int64_t c0 = b[2], end = (int64_t)b[2] + b[3], tc0 = c0 / ts;
+  const int64_t n = end > W ? ntx - tc0 + (end - W - 1) / ts + 1 : (end - 1) / ts - tc0 + 1;
+  return std::min(n, ntx);
+}
+
+std::vector<torch::Tensor> bin_gaussians(torch::Tensor bbox, torch::Tensor order, int64_t H, int64_t W, int64_t ts) {
+  TORCH_CHECK(bbox.dtype() == torch::kInt32 && bbox.is_contiguous(), "bbox must be contiguous int32");
+  TORCH_CHECK(order.dtype() == torch::kInt64 && order.is_contiguous(), "order must be contiguous int64");
+  const int64_t ntx = (W + ts - 1) / ts, nty = (H + ts - 1) / ts, ntiles = ntx * nty;
+  const int64_t nv = order.size(0);
+  const int32_t* bb = bbox.data_ptr<int32_t>();
+  const int64_t* ord = order.data_ptr<int64_t>();
+  auto toff = torch::zeros({ntiles + 1}, torch::kInt64);
+  int64_t* off = toff.data_ptr<int64_t>();
+  std::vector<int64_t> cnt(ntiles, 0);
+  for (int64_t k = 0; k < nv; ++k) {
+    const int32_t* b = bb + 4 * ord[k];
+    int64_t tr0 = b[0] / ts, tr1 = b[1] / ts, tc0 = b[2] / ts, ntc = tile_cols(b, W, ts, ntx);
+    for (int64_t tr = tr0; tr <= tr1; ++tr)
+      for (int64_t j = 0; j < ntc; ++j) cnt[tr * ntx + (tc0 + j) % ntx]++;
+  }
+  off[0] = 0;
+  for (int64_t t = 0; t < ntiles; ++t) off[t + 1] = off[t] + cnt[t];
+  auto tlist = torch::empty({off[ntiles]}, torch::kInt32);
+  int32_t* tl = tlist.data_ptr<int32_t>();
+  std::vector<int64_t> pos(off, off + ntiles);
+  for (int64_t k = 0; k < nv; ++k) {
+    int64_t g = ord[k];
+    const int32_t* b = bb + 4 * g;
+    int64_t tr0 = b[0] / ts, tr1 = b[1] / ts, tc0 = b[2] / ts, ntc = tile_cols(b, W, ts, ntx);
+    for (int64_t tr = tr0; tr <= tr1; ++tr)
+      for (int64_t j = 0; j < ntc; ++j) tl[pos[tr * ntx + (tc0 + j) % ntx]++] = (int32_t)g;
+  }
+  return {toff, tlist};
+}
+
+struct Span {
+  int r0, r1;      // rows, inclusive, clipped to the tile
+  int a0, a1;      // first column interval [a0, a1)
+  int b0, b1;      // wrapped column interval [b0, b1)
+};
+
+inline bool tile_span(const int32_t* b, int y0, int y1, int x0, int x1, int W, Span& s) {
+  s.r0 = std::max<int>(y0, b[0]);
+  s.r1 = std::min<int>(y1 - 1, b[1]);
+  if (s.r0 > s.r1) return false;
+  const int c0 = b[2], cw = b[3];
+  s.a0 = std::max(x0, c0);
+  s.a1 = std::min(x1, c0 + cw);
+  s.b0 = std::max(x0, c0 - W);
+  s.b1 = std::min(x1, c0 + cw - W);
+  return s.a0 < s.a1 || s.b0 < s.b1;
+}
+
+template <typename T>
+struct G {
+  T a1x, a1y, a1z, a2x, a2y, a2z, nx, ny, nz, uc, vc, q00, q01, q11, op, cr, cg, cb, dist, tau;
+  explicit G(const T* p)
+      : a1x(p[0]), a1y(p[1]), a1z(p[2]), a2x(p[3]), a2y(p[4]), a2z(p[5]), nx(p[6]), ny(p[7]), nz(p[8]),
+        uc(p[9]), vc(p[10]), q00(p[11]), q01(p[12]), q11(p[13]), op(p[14]), cr(p[15]), cg(p[16]), cb(p[17]),
+        dist(p[18]), tau(p[19]) {}
+};
+
+// Pass 1 of a row segment: power of the Gaussian at every pixel (branch-free so that
+// the compiler vectorises it; directions are stored as three planes). Pixels with
+// c <= C_MIN get +inf (and a NaN, if any, fails the "power <= tau" test later).
+template <typename T>
+inline void row_power(const G<T>& q, const T* __restrict dx, const T* __restrict dy, const T* __restrict dz, int n,
+                      T* __restrict pw, T* __restrict uu, T* __restrict vv, T* __restrict icc) {
+  const T inf = std::numeric_limits<T>::infinity();
+#pragma omp simd
+  for (int j = 0; j < n; ++j) {
+    const T c = q.nx * dx[j] + q.ny * dy[j] + q.nz * dz[j];
+    const bool ok = c > (T)C_MIN;
+    const T ic = T(1) / (ok ? c : T(1));
+    const T u = (q.a1x * dx[j] + q.a1y * dy[j] + q.a1z * dz[j]) * ic - q.uc;
+    const T v = (q.a2x * dx[j] + q.a2y * dy[j] + q.a2z * dz[j]) * ic - q.vc;
+    const T p = T(0.5) * (q.q00 * u * u + q.q11 * v * v) + q.q01 * u * v;
+    pw[j] = ok ? p : inf;
+    uu[j] = u;
+    vv[j] = v;
+    icc[j] = ic;
+  }
+}
+
+template <typename T>
+void forward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t* toff, const int32_t* tlist, int H,
+                  int W, int ts, T* out_color, T* out_depth, T* out_T, int32_t* out_last, uint8_t* hit) {
+  const int ntx = (W + ts - 1) / ts, nty = (H + ts - 1) / ts, ntiles = ntx * nty;
+  const int nt = threads_for(toff[ntiles], ts);
+  const int64_t HW = (int64_t)H * W;
+#pragma omp parallel for schedule(dynamic, 1) num_threads(nt)
+  for (int tile = 0; tile < ntiles; ++tile) {
+    const int ty = tile / ntx, tx = tile % ntx;
+    const int y0 = ty * ts, y1 = std::min(H, y0 + ts), x0 = tx * ts, x1 = std::min(W, x0 + ts);
+    const int tw = x1 - x0, npx = tw * (y1 - y0);
+    T Tr[MAX_TILE * MAX_TILE], accR[MAX_TILE * MAX_TILE], accG[MAX_TILE * MAX_TILE], accB[MAX_TILE * MAX_TILE],
+        dep[MAX_TILE * MAX_TILE];
+    T pw[MAX_TILE], uu[MAX_TILE], vv[MAX_TILE], icc[MAX_TILE];
+    int32_t last[MAX_TILE * MAX_TILE];
+    for (int i = 0; i < npx; ++i) {
+      Tr[i] = 1;
+      accR[i] = accG[i] = accB[i] = 0;
+      dep[i] = 0;
+      last[i] = -1;
+    }
+    int ndone = 0;
+    for (int64_t k = toff[tile]; k < toff[tile + 1] && ndone < npx; ++k) {
+      const int g = tlist[k];
+      if (k + 1 < toff[tile + 1]) {  // the next entry's rows are random accesses: fetch them early
+        const int gn = tlist[k + 1];
+        __builtin_prefetch(P + (int64_t)gn * PACK);
+        __builtin_prefetch(P + (int64_t)gn * PACK + PACK - 1);
+        __builtin_prefetch(bbox + 4 * gn);
+      }
+      Span s;
+      if (!tile_span(bbox + 4 * g, y0, y1, x0, x1, W, s)) continue;
+      const G<T> q(P + (int64_t)g * PACK);
+      int any = 0;
+      for (int r = s.r0; r <= s.r1; ++r) {
+        for (int iv = 0; iv < 2; ++iv) {
+          const int cs = iv ? s.b0 : s.a0, ce = iv ? s.b1 : s.a1;
+          if (cs >= ce) continue;
+          const int64_t o = (int64_t)r * W + cs;
+          const int n = ce - cs, base = (r - y0) * tw + (cs - x0);
+          row_power<T>(q, dirs + o, dirs + HW + o, dirs + 2 * HW + o, n, pw, uu, vv, icc);
+          // Pass 2: blend the hits (scalar: most of a box is not hit, and exp is costly).
+          for (int j = 0; j < n; ++j) {
+            if (!(pw[j] <= q.tau)) continue;
+            const int i = base + j;
+            if (Tr[i] < (T)T_MIN) continue;
+            any = 1;
+            const T alpha = std::min(q.op * std::exp(-pw[j]), (T)ALPHA_MAX);
+            const T w = alpha * Tr[i];
+            accR[i] += w * q.cr;
+            accG[i] += w * q.cg;
+            accB[i] += w * q.cb;
+            dep[i] += w * q.dist;
+            Tr[i] *= (T(1) - alpha);
+            last[i] = (int32_t)k;
+            if (Tr[i] < (T)T_MIN) ++ndone;
+          }
+        }
+      }
+      hit[k] = any;  // the backward skips entries that blended nothing in this tile
+    }
+    for (int r = y0; r < y1; ++r)
+      for (int col = x0; col < x1; ++col) {
+        const int i = (r - y0) * tw + (col - x0);
+        const int64_t o = (int64_t)r * W + col;
+        out_color[3 * o] = accR[i];
+        out_color[3 * o + 1] = accG[i];
+        out_color[3 * o + 2] = accB[i];
+        out_depth[o] = dep[i];
+        out_T[o] = Tr[i];
+        out_last[o] = last[i];
+      }
+  }
+}
+
+template <typename T>
+void backward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t* toff, const int32_t* tlist, int H,
+                   int W, int ts, const T* gcol, const T* gdep, const T* galpha, const T* Tfin, const int32_t* lastk,
+                   const uint8_t* hit, int64_t nv, int nt, double* gbuf /* [nt, nv, PACK] */) {
+  const int ntx = (W + ts - 1) / ts, nty = (H + ts - 1) / ts, ntiles = ntx * nty;
+  const int64_t HW = (int64_t)H * W;
+#pragma omp parallel num_threads(nt)
+  {
+    double* mybuf = gbuf + (int64_t)omp_get_thread_num() * nv * PACK;
+#pragma omp for schedule(dynamic, 1)
+    for (int tile = 0; tile < ntiles; ++tile) {
+      const int ty = tile / ntx, tx = tile % ntx;
+      const int y0 = ty * ts, y1 = std::min(H, y0 + ts), x0 = tx * ts, x1 = std::min(W, x0 + ts);
+      const int tw = x1 - x0;
+      T Tr[MAX_TILE * MAX_TILE], Sg[MAX_TILE * MAX_TILE], gCr[MAX_TILE * MAX_TILE], gCg[MAX_TILE * MAX_TILE],
+          gCb[MAX_TILE * MAX_TILE], gD[MAX_TILE * MAX_TILE], gA[MAX_TILE * MAX_TILE];
+      T pw[MAX_TILE], uu[MAX_TILE], vv[MAX_TILE], icc[MAX_TILE];
+      int32_t last[MAX_TILE * MAX_TILE];
+      int64_t kmax = -1;
+      for (int r = y0; r < y1; ++r)
+        for (int col = x0; col < x1; ++col) {
+          const int i = (r - y0) * tw + (col - x0);
+          const int64_t o = (int64_t)r * W + col;
+          Tr[i] = Tfin[o];
+          Sg[i] = 0;
+          gCr[i] = gcol[3 * o];
+          gCg[i] = gcol[3 * o + 1];
+          gCb[i] = gcol[3 * o + 2];
+          gD[i] = gdep[o];
+          gA[i] = galpha[o];
+          last[i] = lastk[o];
+          kmax = std::max<int64_t>(kmax, lastk[o]);
+        }
+      for (int64_t k = kmax; k >= toff[tile]; --k) {
+        if (k - 1 >= toff[tile]) {  // prefetch the previous entry's parameters and gradient row
+          const int gp = tlist[k - 1];
+          __builtin_prefetch(P + (int64_t)gp * PACK);
+          __builtin_prefetch(P + (int64_t)gp * PACK + PACK - 1);
+          __builtin_prefetch(bbox + 4 * gp);
+          __builtin_prefetch(mybuf + (int64_t)gp * PACK, 1);
+          __builtin_prefetch(mybuf + (int64_t)gp * PACK + 8, 1);
+          __builtin_prefetch(mybuf + (int64_t)gp * PACK + PACK - 1, 1);
+        }
+        if (!hit[k]) continue;
+        const int g = tlist[k];
+        Span s;
+        if (!tile_span(bbox + 4 * g, y0, y1, x0, x1, W, s)) continue;
+        const G<T> q(P + (int64_t)g * PACK);
+        // per-(Gaussian, tile) sums in the working precision (at most ts² terms), then
+        // added to the thread's double buffer
+        T ga1x = 0, ga1y = 0, ga1z = 0, ga2x = 0, ga2y = 0, ga2z = 0, gnx = 0, gny = 0, gnz = 0, guc = 0, gvc = 0,
+          gq00 = 0, gq01 = 0, gq11 = 0, gop = 0, gcr = 0, gcg = 0, gcb = 0, gdist = 0;
+        int any = 0;
+        for (int r = s.r0; r <= s.r1; ++r) {
+          for (int iv = 0; iv < 2; ++iv) {
+            const int cs = iv ? s.b0 : s.a0, ce = iv ? s.b1 : s.a1;
+            if (cs >= ce) continue;
+            const int64_t o = (int64_t)r * W + cs;
+            const int n = ce - cs, base = (r - y0) * tw + (cs - x0);
+            const T* dx = dirs + o;
+            const T* dy = dirs + HW + o;
+            const T* dz = dirs + 2 * HW + o;
+            row_power<T>(q, dx, dy, dz, n, pw, uu, vv, icc);
+            for (int j = 0; j < n; ++j) {
+              if (!(pw[j] <= q.tau)) continue;
+              const int i = base + j;
+              if (k > (int64_t)last[i]) continue;
+              const T u = uu[j], v = vv[j], ic = icc[j];
+              const T Gv = std::exp(-pw[j]);
+              const T oG = q.op * Gv;
+              const T alpha = std::min(oG, (T)ALPHA_MAX);
+              const T ioma = T(1) / (T(1) - alpha);
+              const T Ti = Tr[i] * ioma;
+              const T w = alpha * Ti;
+              const T xg = q.cr * gCr[i] + q.cg * gCg[i] + q.cb * gCb[i] + q.dist * gD[i] + gA[i];
+              const T dLda = Ti * xg - Sg[i] * ioma;
+              Sg[i] += w * xg;
+              Tr[i] = Ti;
+              any = 1;
+              gcr += w * gCr[i];
+              gcg += w * gCg[i];
+              gcb += w * gCb[i];
+              gdist += w * gD[i];
+              if (oG < (T)ALPHA_MAX) {
+                gop += Gv * dLda;
+                const T dpow = -oG * dLda;
+                const T du = dpow * (q.q00 * u + q.q01 * v);
+                const T dv = dpow * (q.q01 * u + q.q11 * v);
+                gq00 += T(0.5) * dpow * u * u;
+                gq01 += dpow * u * v;
+                gq11 += T(0.5) * dpow * v * v;
+                guc -= du;
+                gvc -= dv;
+                // h0 = (u + uc) c, h1 = (v + vc) c
+                const T dh0 = du * ic, dh1 = dv * ic;
+                const T dc = -(dh0 * (u + q.uc) + dh1 * (v + q.vc));
+                ga1x += dh0 * dx[j]; ga1y += dh0 * dy[j]; ga1z += dh0 * dz[j];
+                ga2x += dh1 * dx[j]; ga2y += dh1 * dy[j]; ga2z += dh1 * dz[j];
+                gnx += dc * dx[j]; gny += dc * dy[j]; gnz += dc * dz[j];
+              }
+            }
+          }
+        }
+        if (any) {
+          double* gb = mybuf + (int64_t)g * PACK;
+          gb[0] += ga1x; gb[1] += ga1y; gb[2] += ga1z;
+          gb[3] += ga2x; gb[4] += ga2y; gb[5] += ga2z;
+          gb[6] += gnx; gb[7] += gny; gb[8] += gnz;
+          gb[9] += guc;
+          gb[10] += gvc;
+          gb[11] += gq00;
+          gb[12] += gq01;
+          gb[13] += gq11;
+          gb[14] += gop;
+          gb[15] += gcr;
+          gb[16] += gcg;
+          gb[17] += gcb;
+          gb[18] += gdist;
+        }
+      }
+    }
+  }
+}
+
+template <typename T>
+void reduce_threads(const double* b, T* o, int64_t n, int nt) {
+#pragma omp parallel for schedule(static) num_threads(nt)
+  for (int64_t i = 0; i < n; ++i) {
+    double acc = 0;
+    for (int t = 0; t < nt; ++t) acc += b[t * n + i];
+    o[i] = (T)acc;
+  }
+}
+
+std::vector<torch::Tensor> forward(torch::Tensor P, torch::Tensor dirs, torch::Tensor bbox, torch::Tensor toff,
+                                   torch::Tensor tlist, int64_t H, int64_t W, int64_t ts) {
+  TORCH_CHECK(ts >= 1 && ts <= MAX_TILE, "tile size must be 1..32");
+  TORCH_CHECK(P.is_contiguous() && dirs.is_contiguous() && P.dtype() == dirs.dtype(), "bad inputs");
+  TORCH_CHECK(dirs.dim() == 3 && dirs.size(0) == 3 && dirs.size(1) == H && dirs.size(2) == W, "dirs must be [3,H,W]");
+  auto opts = P.options();
+  auto color = torch::empty({H, W, 3}, opts);
+  auto depth = torch::empty({H, W}, opts);
+  auto Tf = torch::empty({H, W}, opts);
+  auto last = torch::empty({H, W}, torch::kInt32);
+  auto hit = torch::zeros({tlist.size(0)}, torch::kUInt8);
+  AT_DISPATCH_FLOATING_TYPES(P.scalar_type(), "splat_forward", [&] {
+    forward_impl<scalar_t>(dirs.data_ptr<scalar_t>(), P.data_ptr<scalar_t>(), bbox.data_ptr<int32_t>(),
+                           toff.data_ptr<int64_t>(), tlist.data_ptr<int32_t>(), (int)H, (int)W, (int)ts,
+                           color.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(), Tf.data_ptr<scalar_t>(),
+                           last.data_ptr<int32_t>(), hit.data_ptr<uint8_t>());
+  });
+  return {color, depth, Tf, last, hit};
+}
+
+torch::Tensor backward(torch::Tensor P, torch::Tensor dirs, torch::Tensor bbox, torch::Tensor toff,
+                       torch::Tensor tlist, int64_t H, int64_t W, int64_t ts, torch::Tensor gcol, torch::Tensor gdep,
+                       torch::Tensor galpha, torch::Tensor Tf, torch::Tensor last, torch::Tensor hit) {
+  const int64_t nv = P.size(0);
+  const int nt = threads_for(toff[toff.size(0) - 1].item<int64_t>(), (int)ts);
+  auto gbuf = torch::zeros({nt, nv, PACK}, torch::kFloat64);
+  AT_DISPATCH_FLOATING_TYPES(P.scalar_type(), "splat_backward", [&] {
+    backward_impl<scalar_t>(dirs.data_ptr<scalar_t>(), P.data_ptr<scalar_t>(), bbox.data_ptr<int32_t>(),
+                            toff.data_ptr<int64_t>(), tlist.data_ptr<int32_t>(), (int)H, (int)W, (int)ts,
+                            gcol.data_ptr<scalar_t>(), gdep.data_ptr<scalar_t>(), galpha.data_ptr<scalar_t>(),
+                            Tf.data_ptr<scalar_t>(), last.data_ptr<int32_t>(), hit.data_ptr<uint8_t>(), nv, nt,
+                            gbuf.data_ptr<double>());
+  });
+  auto gP = torch::empty({nv, PACK}, P.options());
+  AT_DISPATCH_FLOATING_TYPES(P.scalar_type(), "splat_backward_reduce", [&] {
+    reduce_threads<scalar_t>(gbuf.data_ptr<double>(), gP.data_ptr<scalar_t>(), nv * PACK, nt);
+  });
+  return gP;
+}
+
+
+// ---------------------------------------------------------------------------
+// Fused CPU path: projection + depth sort + binning + rasterisation in one call,
+// and the matching backward (projection gradients written by hand).
+
+proj::Cam make_cam(torch::Tensor camv) {
+  auto c = camv.to(torch::kFloat64).contiguous();
+  const double* v = c.data_ptr<double>();
+  proj::Cam cam;
+  cam.kind = (int)v[0]; cam.H = (int)v[1]; cam.W = (int)v[2];
+  cam.sx = v[3]; cam.sy = v[4]; cam.cx = v[5]; cam.cy = v[6]; cam.eps = v[7]; cam.near = v[8];
+  return cam;
+}
+
+template <typename T>
+void project_all(const proj::Cam& cam, const T* Rv, const T* tv, const T* means, const T* quats, const T* scales,
+                 const T* opac, const T* rgb, int64_t N, T* P, int32_t* bbox, bool* valid, int32_t* radii, T* m2d,
+                 T* rot) {
+  const int nt = N < 4096 ? 1 : nthreads();
+#pragma omp parallel for schedule(static) num_threads(nt)
+  for (int64_t g = 0; g < N; ++g) {
+    proj::State<T> st;
+    proj::forward_one<T>(cam, Rv, tv, means + 3 * g, quats + 4 * g, scales + 3 * g, opac[g], st);
+    T* p = P + g * PACK;
+    int32_t* b = bbox + 4 * g;
+    T* r = rot + 4 * g;
+    r[0] = 1; r[1] = 0; r[2] = 0; r[3] = 1;
+    if (cam.kind == 0) {
+      for (int j = 0; j < 3; ++j) { p[j] = (T)cam.sx * st.e1[j]; p[3 + j] = (T)cam.sy * st.e2[j]; p[6 + j] = st.n[j]; }
+    } else {
+      p[0] = (T)cam.sx; p[1] = 0; p[2] = 0; p[3] = 0; p[4] = (T)cam.sy; p[5] = 0; p[6] = 0; p[7] = 0; p[8] = 1;
+    }
+    p[9] = st.uc; p[10] = st.vc; p[11] = st.Q[0]; p[12] = st.Q[1]; p[13] = st.Q[2]; p[14] = opac[g];
+    p[15] = rgb[3 * g]; p[16] = rgb[3 * g + 1]; p[17] = rgb[3 * g + 2]; p[18] = st.dist; p[19] = st.tau;
+    bool ok = st.valid;
+    double radius = 0;
+    if (ok) {
+      const double A = st.A, B = st.B, C = st.C, tau = st.tau;
+      const double lmax = 0.5 * (A + C) + std::sqrt(std::max(0.25 * (A - C) * (A - C) + B * B, 0.0));
+      radius = std::sqrt(std::max(2.0 * tau * lmax, 0.0));
+      ok = std::isfinite(radius);
+      if (ok && cam.kind == 0) {
+        double n[3] = {(double)st.n[0], (double)st.n[1], (double)st.n[2]}, e[3], s[3];
+        proj::east_south<double>(n, e, s);
+        const double e1e = st.e1[0] * e[0] + st.e1[1] * e[1] + st.e1[2] * e[2];
+        const double e1s = st.e1[0] * s[0] + st.e1[1] * s[1] + st.e1[2] * s[2];
+        const double e2e = st.e2[0] * e[0] + st.e2[1] * e[1] + st.e2[2] * e[2];
+        const double e2s = st.e2[0] * s[0] + st.e2[1] * s[1] + st.e2[2] * s[2];
+        r[0] = (T)e1e; r[1] = (T)e1s; r[2] = (T)e2e; r[3] = (T)e2s;
+        const double see = e1e * e1e * A + 2 * e1e * e2e * B + e2e * e2e * C;
+        const double sss = e1s * e1s * A + 2 * e1s * e2s * B + e2s * e2s * C;
+        const double hx = std::sqrt(std::max(2.0 * tau * see, 0.0)) / cam.sx;
+        const double hy = std::sqrt(std::max(2.0 * tau * sss, 0.0)) / cam.sy;
+        ok = proj::equirect_box(cam, n, hx, hy, b);
+      } else if (ok) {
+        const double hx = std::sqrt(std::max(2.0 * tau * A, 0.0)), hy = std::sqrt(std::max(2.0 * tau * C, 0.0));
+        ok = proj::pinhole_box(cam, st.uc + cam.cx, st.vc + cam.cy, hx, hy, b);
+      }
+    }
+    if (!ok) { b[0] = 0; b[1] = -1; b[2] = 0; b[3] = 0; }
+    valid[g] = ok;
+    radii[g] = ok ? (int32_t)std::ceil(radius) : 0;
+    if (cam.kind == 0) {
+      const double x = st.n[0], y = st.n[1], z = st.n[2];
+      const double phi = std::atan2(x, z), theta = std::atan2(-y, std::sqrt(x * x + z * z));
+      m2d[2 * g] = (T)((phi / (2 * proj::PI) + 0.5) * cam.W - 0.5);
+      m2d[2 * g + 1] = (T)((0.5 - theta / proj::PI) * cam.H - 0.5);
+    } else {
+      m2d[2 * g] = st.uc + (T)cam.cx;
+      m2d[2 * g + 1] = st.vc + (T)cam.cy;
+    }
+  }
+}
+
+std::vector<torch::Tensor> render_forward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
+                                          torch::Tensor opac, torch::Tensor rgb, torch::Tensor viewmat,
+                                          torch::Tensor dirs, torch::Tensor camv, int64_t ts) {
+  TORCH_CHECK(ts >= 1 && ts <= MAX_TILE, "tile size must be 1..32");
+  const proj::Cam cam = make_cam(camv);
+  const int64_t N = means.size(0), H = cam.H, W = cam.W;
+  auto opts = means.options();
+  auto P = torch::empty({N, PACK}, opts);
+  auto bbox = torch::empty({N, 4}, torch::kInt32);
+  auto valid = torch::empty({N}, torch::kBool);
+  auto radii = torch::empty({N}, torch::kInt32);
+  auto m2d = torch::empty({N, 2}, opts);
+  auto rot = torch::empty({N, 4}, opts);
+  auto vm = viewmat.contiguous();
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project", [&] {
+    scalar_t R[9], tv[3];
+    auto acc = vm.accessor<scalar_t, 2>();
+    for (int i = 0; i < 3; ++i) {
+      for (int j = 0; j < 3; ++j) R[3 * i + j] = acc[i][j];
+      tv[i] = acc[i][3];
+    }
+    project_all<scalar_t>(cam, R, tv, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
+                          scales.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(), rgb.data_ptr<scalar_t>(), N,
+                          P.data_ptr<scalar_t>(), bbox.data_ptr<int32_t>(), valid.data_ptr<bool>(),
+                          radii.data_ptr<int32_t>(), m2d.data_ptr<scalar_t>(), rot.data_ptr<scalar_t>());
+  });
+  // front-to-back order of the visible Gaussians
+  std::vector<std::pair<double, int64_t>> keys;
+  keys.reserve(N);
+  {
+    const bool* v = valid.data_ptr<bool>();
+    AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "keys", [&] {
+      const scalar_t* p = P.data_ptr<scalar_t>();
+      for (int64_t g = 0; g < N; ++g)
+        if (v[g]) keys.emplace_back((double)p[g * PACK + 18], g);
+    });
+  }
+  std::sort(keys.begin(), keys.end());
+  auto order = torch::empty({(int64_t)keys.size()}, torch::kInt64);
+  int64_t* o = order.data_ptr<int64_t>();
+  for (size_t i = 0; i < keys.size(); ++i) o[i] = keys[i].second;
+  auto bins = bin_gaussians(bbox, order, H, W, ts);
+  auto out = forward(P, dirs, bbox, bins[0], bins[1], H, W, ts);
+  // color, depth, Tfinal, last, P, bbox, toff, tlist, valid, radii, m2d, rot, hit
+  return {out[0], out[1], out[2], out[3], P, bbox, bins[0], bins[1], valid, radii, m2d, rot, out[4]};
+}
+
+template <typename T>
+void project_backward_all(const proj::Cam& cam, const T* Rv, const T* tv, const T* means, const T* quats,
+                          const T* scales, const T* opac, const bool* valid, const T* rot, const T* gP, int64_t N,
+                          T* gmeans, T* gquats, T* gscales, T* gopac, T* grgb, T* gm2d, double* gview /*[nt,12]*/) {
+  const int nt = N < 4096 ? 1 : nthreads();
+#pragma omp parallel num_threads(nt)
+  {
+    double* gv = gview + 12 * omp_get_thread_num();
+#pragma omp for schedule(static)
+    for (int64_t g = 0; g < N; ++g) {
+      const T* G = gP + g * PACK;
+      T* gm = gmeans + 3 * g;
+      T* gq = gquats + 4 * g;
+      T* gs = gscales + 3 * g;
+      gm[0] = gm[1] = gm[2] = 0; gq[0] = gq[1] = gq[2] = gq[3] = 0; gs[0] = gs[1] = gs[2] = 0;
+      gopac[g] = 0; grgb[3 * g] = grgb[3 * g + 1] = grgb[3 * g + 2] = 0; gm2d[2 * g] = gm2d[2 * g + 1] = 0;
+      if (!valid[g]) continue;
+      proj::State<T> st;
+      proj::forward_one<T>(cam, Rv, tv, means + 3 * g, quats + 4 * g, scales + 3 * g, opac[g], st);
+      gopac[g] = G[14];
+      grgb[3 * g] = G[15]; grgb[3 * g + 1] = G[16]; grgb[3 * g + 2] = G[17];
+      const T* r = rot + 4 * g;
+      gm2d[2 * g] = r[0] * G[9] + r[2] * G[10];
+      gm2d[2 * g + 1] = r[1] * G[9] + r[3] * G[10];
+      // conic -> covariance: dL/dΣ = -Q Gm Q, Gm = [[g00, g01/2], [g01/2, g11]]
+      const T q00 = st.Q[0], q01 = st.Q[1], q11 = st.Q[2];
+      const T g00 = G[11], g01 = 0.5 * G[12], g11 = G[13];
+      // X = Gm Q
+      const T x00 = g00 * q00 + g01 * q01, x01 = g00 * q01 + g01 * q11;
+      const T x10 = g01 * q00 + g11 * q01, x11 = g01 * q01 + g11 * q11;
+      const T s00 = -(q00 * x00 + q01 * x10), s01 = -(q00 * x01 + q01 * x11), s11 = -(q01 * x01 + q11 * x11);
+      const T gA = s00, gC = s11, gB = 2 * s01;
+      const T* p = st.m2;
+      const T* q = st.m2 + 3;
+      T gp[3], gqv[3];
+      for (int j = 0; j < 3; ++j) { gp[j] = 2 * gA * p[j] + gB * q[j]; gqv[j] = 2 * gC * q[j] + gB * p[j]; }
+      // M2 rows = T2_k L  ->  gT2_k = L gm2_k, gL += T2_kᵀ gm2_k
+      T gT2[6];
+      for (int i = 0; i < 3; ++i) {
+        gT2[i] = st.L[3 * i] * gp[0] + st.L[3 * i + 1] * gp[1] + st.L[3 * i + 2] * gp[2];
+        gT2[3 + i] = st.L[3 * i] * gqv[0] + st.L[3 * i + 1] * gqv[1] + st.L[3 * i + 2] * gqv[2];
+      }
+      T T2[6];
+      T gt[3] = {0, 0, 0};
+      if (cam.kind == 0) {
+        const T k1 = (T)cam.sx / st.dist, k2 = (T)cam.sy / st.dist;
+        for (int j = 0; j < 3; ++j) { T2[j] = st.e1[j] * k1; T2[3 + j] = st.e2[j] * k2; }
+        T ge1[3], ge2[3];
+        for (int j = 0; j < 3; ++j) {
+          ge1[j] = gT2[j] * k1 + (T)cam.sx * G[j];
+          ge2[j] = gT2[3 + j] * k2 + (T)cam.sy * G[3 + j];
+        }
+        T gdist = G[18];
+        for (int j = 0; j < 3; ++j) gdist -= (gT2[j] * T2[j] + gT2[3 + j] * T2[3 + j]) / st.dist;
+        const T x = st.n[0], y = st.n[1], sg = st.sign, a = st.a, a2 = a * a;
+        T gn[3] = {G[6], G[7], G[8]};
+        gn[0] += ge1[0] * sg * 2 * x * a + ge1[1] * sg * y * a - ge1[2] * sg + ge2[0] * y * a;
+        gn[1] += ge1[1] * sg * x * a + ge2[0] * x * a + ge2[1] * 2 * y * a - ge2[2];
+        gn[2] += ge1[0] * sg * x * x * a2 + ge1[1] * sg * x * y * a2 + ge2[0] * x * y * a2 + ge2[1] * y * y * a2;
+        const T ndg = st.n[0] * gn[0] + st.n[1] * gn[1] + st.n[2] * gn[2];
+        for (int j = 0; j < 3; ++j) gt[j] = (gn[j] - st.n[j] * ndg) / st.dist + st.n[j] * gdist;
+      } else {
+        const T z = st.z, sx = (T)cam.sx, sy = (T)cam.sy;
+        T2[0] = sx / z; T2[1] = 0; T2[2] = -sx * st.jx / z; T2[3] = 0; T2[4] = sy / z; T2[5] = -sy * st.jy / z;
+        T gz = -gT2[0] * sx / (z * z) + gT2[2] * sx * st.jx / (z * z) - gT2[4] * sy / (z * z) +
+               gT2[5] * sy * st.jy / (z * z);
+        T gjx = -gT2[2] * sx / z, gjy = -gT2[5] * sy / z;
+        T gmx = sx * G[9], gmy = sy * G[10];
+        if (st.jx == st.mx) gmx += gjx;
+        if (st.jy == st.my) gmy += gjy;
+        gt[0] += gmx / z; gt[1] += gmy / z;
+        gz -= (gmx * st.mx + gmy * st.my) / z;
+        gt[2] += gz;
+        for (int j = 0; j < 3; ++j) gt[j] += st.n[j] * G[18];
+      }
+      // L = Rv Rq S
+      T gL[9];
+      for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) gL[3 * i + j] = T2[i] * gp[j] + T2[3 + i] * gqv[j];
+      T M[9], gM[9];  // M = Rq S ; gM = Rvᵀ gL ; gRv += gL Mᵀ
+      const T* s = scales + 3 * g;
+      for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) M[3 * i + j] = st.Rq[3 * i + j] * s[j];
+      for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) {
+          gM[3 * i + j] = Rv[i] * gL[j] + Rv[3 + i] * gL[3 + j] + Rv[6 + i] * gL[6 + j];
+          gv[3 * i + j] += (double)(gL[3 * i] * M[3 * j] + gL[3 * i + 1] * M[3 * j + 1] + gL[3 * i + 2] * M[3 * j + 2]);
+        }
+      T gR[9];
+      for (int j = 0; j < 3; ++j) {
+        gs[j] = st.Rq[j] * gM[j] + st.Rq[3 + j] * gM[3 + j] + st.Rq[6 + j] * gM[6 + j];
+        for (int i = 0; i < 3; ++i) gR[3 * i + j] = gM[3 * i + j] * s[j];
+      }
+      const T w = st.qn[0], qx = st.qn[1], qy = st.qn[2], qz = st.qn[3];
+      T gqn[4];
+      gqn[0] = 2 * (-qz * gR[1] + qy * gR[2] + qz * gR[3] - qx * gR[5] - qy * gR[6] + qx * gR[7]);
+      gqn[1] = 2 * (qy * gR[1] + qz * gR[2] + qy * gR[3] - 2 * qx * gR[4] - w * gR[5] + qz * gR[6] + w * gR[7] - 2 * qx * gR[8]);
+      gqn[2] = 2 * (-2 * qy * gR[0] + qx * gR[1] + w * gR[2] + qx * gR[3] + qz * gR[5] - w * gR[6] + qz * gR[7] - 2 * qy * gR[8]);
+      gqn[3] = 2 * (-2 * qz * gR[0] - w * gR[1] + qx * gR[2] + w * gR[3] - 2 * qz * gR[4] + qy * gR[5] + qx * gR[6] + qy * gR[7]);
+      const T* q4 = quats + 4 * g;
+      const T n2 = q4[0] * q4[0] + q4[1] * q4[1] + q4[2] * q4[2] + q4[3] * q4[3];
+      if (n2 > (T)1e-24) {
+        const T dot = gqn[0] * st.qn[0] + gqn[1] * st.qn[1] + gqn[2] * st.qn[2] + gqn[3] * st.qn[3];
+        for (int i = 0; i < 4; ++i) gq[i] = (gqn[i] - st.qn[i] * dot) * st.qinv;
+      } else {
+        for (int i = 0; i < 4; ++i) gq[i] = gqn[i] * st.qinv;
+      }
+      // t = Rv m + tv
+      const T* m = means + 3 * g;
+      for (int j = 0; j < 3; ++j) gm[j] = Rv[j] * gt[0] + Rv[3 + j] * gt[1] + Rv[6 + j] * gt[2];
+      for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) gv[3 * i + j] += (double)(gt[i] * m[j]);
+        gv[9 + i] += (double)gt[i];
+      }
+    }
+  }
+}
+
+std::vector<torch::Tensor> render_backward(torch::Tensor gcol, torch::Tensor gdep, torch::Tensor galpha,
+                                           torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
+                                           torch::Tensor opac, torch::Tensor viewmat, torch::Tensor dirs,
+                                           torch::Tensor camv, int64_t ts, torch::Tensor P, torch::Tensor bbox,
+                                           torch::Tensor toff, torch::Tensor tlist, torch::Tensor Tf,
+                                           torch::Tensor last, torch::Tensor valid, torch::Tensor rot,
+                                           torch::Tensor hit) {
+  const proj::Cam cam = make_cam(camv);
+  const int64_t N = means.size(0);
+  auto gP = backward(P, dirs, bbox, toff, tlist, cam.H, cam.W, ts, gcol, gdep, galpha, Tf, last, hit);
+  auto opts = means.options();
+  auto gmeans = torch::empty({N, 3}, opts), gquats = torch::empty({N, 4}, opts), gscales = torch::empty({N, 3}, opts);
+  auto gopac = torch::empty({N}, opts), grgb = torch::empty({N, 3}, opts), gm2d = torch::empty({N, 2}, opts);
+  const int ntv = std::max(1, nthreads());
+  auto gview = torch::zeros({ntv, 12}, torch::kFloat64);
+  auto vm = viewmat.contiguous();
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_backward", [&] {
+    scalar_t R[9], tv[3];
+    auto acc = vm.accessor<scalar_t, 2>();
+    for (int i = 0; i < 3; ++i) {
+      for (int j = 0; j < 3; ++j) R[3 * i + j] = acc[i][j];
+      tv[i] = acc[i][3];
+    }
+    project_backward_all<scalar_t>(cam, R, tv, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
+                                   scales.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(), valid.data_ptr<bool>(),
+                                   rot.data_ptr<scalar_t>(), gP.data_ptr<scalar_t>(), N,
+                                   gmeans.data_ptr<scalar_t>(), gquats.data_ptr<scalar_t>(),
+                                   gscales.data_ptr<scalar_t>(), gopac.data_ptr<scalar_t>(),
+                                   grgb.data_ptr<scalar_t>(), gm2d.data_ptr<scalar_t>(), gview.data_ptr<double>());
+  });
+  auto gv = gview.sum(0);
+  auto gviewmat = torch::zeros({4, 4}, torch::kFloat64);
+  gviewmat.index_put_({torch::indexing::Slice(0, 3), torch::indexing::Slice(0, 3)}, gv.slice(0, 0, 9).view({3, 3}));
+  gviewmat.index_put_({torch::indexing::Slice(0, 3), 3}, gv.slice(0, 9, 12));
+  return {gmeans, gquats, gscales, gopac, grgb, gviewmat.to(means.scalar_type()), gm2d};
+}
+
+}  // namespace
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("bin_gaussians", &bin_gaussians, "tile binning");
+  m.def("forward", &forward, "rasterise forward");
+  m.def("backward", &backward, "rasterise backward");
+  m.def("render_forward", &render_forward, "fused projection + rasterisation");
+  m.def("render_backward", &render_backward, "fused backward");
+}

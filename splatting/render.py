@@ -1,0 +1,224 @@
+"""``splatting.render``: 360° (and pinhole) Gaussian splatting, one function for all devices."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional, Union
+
+import torch
+
+from .cameras import EquirectCamera, PinholeCamera, cubemap_faces
+from .project import project
+from .raster_torch import TorchRaster, bin_gaussians_torch
+from .sh import eval_sh, num_sh_bases
+
+__all__ = ["render", "render_cubemap", "RenderOutput"]
+
+DEFAULT_TILE = 16
+
+
+@dataclass
+class RenderOutput:
+    image: torch.Tensor  # [H,W,3]
+    alpha: torch.Tensor  # [H,W]
+    depth: torch.Tensor  # [H,W] Σ T_i α_i ‖t_i‖ (divide by alpha for the expected distance)
+    means2d: torch.Tensor  # [N,2] leaf; .grad = tangent-plane position gradient (pixels)
+    radii: torch.Tensor  # [N] int32 pixels, 0 = not visible
+    visible: torch.Tensor  # [N] bool
+    backend: str = "torch"
+
+
+def _pick_backend(backend, device):
+    if backend is None:
+        backend = "cpp" if device.type == "cpu" else "torch"
+    if backend not in ("cpp", "torch"):
+        raise ValueError(f"backend must be 'cpp', 'torch' or None, got {backend!r}")
+    if backend == "cpp":
+        if device.type != "cpu":
+            raise ValueError("backend='cpp' needs CPU tensors; use backend='torch' on CUDA")
+        from . import raster_cpp
+
+        if raster_cpp.load() is None:
+            backend = "torch"
+    return backend
+
+
+def _color_fn(colors, sh_degree, N):
+    if colors.dim() == 2:
+        if sh_degree not in (None, 0) and colors.shape[-1] != 3:
+            raise ValueError("colors must be [N,3] RGB or [N,K,3] SH coefficients")
+        if colors.shape != (N, 3):
+            raise ValueError(f"colors must be [N,3], got {tuple(colors.shape)}")
+        return lambda dirs, idx: colors[idx]
+    if colors.dim() != 3 or colors.shape[0] != N or colors.shape[2] != 3:
+        raise ValueError(f"SH colors must be [N,K,3], got {tuple(colors.shape)}")
+    K = colors.shape[1]
+    if sh_degree is None:
+        sh_degree = int(round(math.sqrt(K))) - 1
+    if num_sh_bases(sh_degree) > K:
+        raise ValueError(f"sh_degree={sh_degree} needs {num_sh_bases(sh_degree)} coefficients, got {K}")
+
+    def fn(dirs, idx):
+        return torch.clamp_min(eval_sh(sh_degree, colors[idx], dirs) + 0.5, 0.0)
+
+    return fn
+
+
+def render(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    viewmat: torch.Tensor,
+    camera: Union[EquirectCamera, PinholeCamera],
+    sh_degree: Optional[int] = None,
+    background: Optional[torch.Tensor] = None,
+    eps2d: float = 0.3,
+    near: float = 0.05,
+    backend: Optional[str] = None,
+    tile_size: int = DEFAULT_TILE,
+) -> RenderOutput:
+    """Render N Gaussians seen from ``viewmat`` (4×4 world-to-camera) with ``camera``.
+
+    Differentiable in every tensor argument; runs in the dtype of ``means``
+    (float32 or float64). ``backend``: "cpp" (CPU kernel, default for CPU tensors),
+    "torch" (pure torch, default for CUDA tensors). See docs/splatting.md.
+    """
+    if not isinstance(camera, (EquirectCamera, PinholeCamera)):
+        raise TypeError("camera must be splatting.EquirectCamera or splatting.PinholeCamera")
+    dtype, device = means.dtype, means.device
+    if dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"means must be float32 or float64, got {dtype}")
+    N = means.shape[0]
+    if means.shape != (N, 3) or quats.shape != (N, 4) or scales.shape != (N, 3) or opacities.shape[0] != N:
+        raise ValueError("shapes must be means [N,3], quats [N,4], scales [N,3], opacities [N]")
+    opacities = opacities.reshape(N)
+    backend = _pick_backend(backend, device)
+    H, W = int(camera.height), int(camera.width)
+    viewmat = viewmat.to(device=device, dtype=dtype)
+    extra = (colors,) + ((background,) if isinstance(background, torch.Tensor) else ())
+    if backend == "cpp":
+        image, alpha, depth, means2d, radii, visible = _render_cpp(
+            means, quats.to(dtype), scales.to(dtype), opacities.to(dtype), colors.to(dtype), sh_degree, viewmat,
+            camera, eps2d, near, int(tile_size), extra)
+        if background is not None:
+            bg = torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
+            image = image + (1.0 - alpha)[..., None] * bg
+        return RenderOutput(image=image, alpha=alpha, depth=depth, means2d=means2d, radii=radii, visible=visible,
+                            backend=backend)
+    proj = project(
+        means, quats.to(dtype), scales.to(dtype), opacities.to(dtype), _color_fn(colors.to(dtype), sh_degree, N),
+        viewmat, camera, eps2d, near, extra_grad=extra,
+    )
+    dirs = camera.pixel_dirs(dtype=dtype, device=device)
+    ts = int(tile_size)
+    toff, tlist = bin_gaussians_torch(proj.bbox, proj.packed[:, 18].detach(), H, W, ts)
+    color, depth, alpha = TorchRaster.apply(proj.packed, dirs, toff, tlist, H, W, ts)
+    if background is not None:
+        bg = torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
+        image = color + (1.0 - alpha)[..., None] * bg
+    else:
+        image = color
+    return RenderOutput(image=image, alpha=alpha, depth=depth, means2d=proj.means2d, radii=proj.radii,
+                        visible=proj.visible, backend=backend)
+
+
+def _render_cpp(means, quats, scales, opacities, colors, sh_degree, viewmat, camera, eps2d, near, ts, extra):
+    from . import raster_cpp
+
+    N = means.shape[0]
+    dtype = means.dtype
+    if colors.dim() == 2:
+        _color_fn(colors, sh_degree, N)  # shape checks
+        rgb = colors
+    else:
+        # SH: view direction of each Gaussian in the world frame (from the camera centre)
+        fn = _color_fn(colors, sh_degree, N)
+        R, t = viewmat[:3, :3], viewmat[:3, 3]
+        campos = -(R.T @ t)
+        rgb = fn(means - campos, slice(None))
+    need_grad = torch.is_grad_enabled() and any(
+        x.requires_grad for x in (means, quats, scales, opacities, viewmat, *extra))
+    means2d = torch.zeros(N, 2, dtype=dtype, requires_grad=need_grad)
+    camv = raster_cpp.camera_vector(camera, eps2d, near)
+    dirs = raster_cpp.pixel_planes(camera, dtype)
+    color, depth, alpha, visible, radii, m2d = raster_cpp.CppRender.apply(
+        means, quats, scales, opacities, rgb, viewmat, means2d, dirs, camv, ts)
+    with torch.no_grad():
+        means2d.copy_(m2d)  # values: pixel position of the centre (the gradient ignores them)
+    return color, alpha, depth, means2d, radii, visible
+
+
+_STITCH_CACHE: dict = {}
+
+
+def _stitch_table(height, width, face_size, device):
+    key = (height, width, face_size, str(device))
+    if key in _STITCH_CACHE:
+        return _STITCH_CACHE[key]
+    d = EquirectCamera(height, width).pixel_dirs(dtype=torch.float64).reshape(-1, 3)
+    faces = cubemap_faces(face_size, dtype=torch.float64)
+    R = torch.stack([f[0][:3, :3] for f in faces])  # [6,3,3]
+    dc = torch.einsum("fij,pj->pfi", R, d)  # [P,6,3]
+    face = torch.argmax(dc[..., 2], dim=1)  # [P]
+    v = dc[torch.arange(d.shape[0]), face]  # [P,3]
+    f = face_size / 2.0
+    x = f * v[:, 0] / v[:, 2] + face_size / 2.0 - 0.5  # continuous pixel index
+    y = f * v[:, 1] / v[:, 2] + face_size / 2.0 - 0.5
+    x = x.clamp(0, face_size - 1)
+    y = y.clamp(0, face_size - 1)
+    x0 = torch.floor(x).clamp(max=face_size - 2 if face_size > 1 else 0)
+    y0 = torch.floor(y).clamp(max=face_size - 2 if face_size > 1 else 0)
+    fx, fy = x - x0, y - y0
+    x0, y0 = x0.long(), y0.long()
+    x1 = (x0 + 1).clamp(max=face_size - 1)
+    y1 = (y0 + 1).clamp(max=face_size - 1)
+    base = face * face_size * face_size
+    idx = torch.stack([base + y0 * face_size + x0, base + y0 * face_size + x1,
+                       base + y1 * face_size + x0, base + y1 * face_size + x1], -1)
+    wts = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], -1)
+    out = (idx.to(device), wts.to(device))
+    _STITCH_CACHE[key] = out
+    return out
+
+
+def render_cubemap(
+    means, quats, scales, opacities, colors, viewmat, height: int, width: int,
+    sh_degree=None, background=None, eps2d: float = 0.3, near: float = 0.05, backend=None,
+    face_size: Optional[int] = None, tile_size: int = DEFAULT_TILE,
+) -> RenderOutput:
+    """The "3D-GS" baseline: six 90° pinhole faces (``face_size``, default W/4),
+    resampled bilinearly into an equirectangular ``height`` × ``width`` image.
+    A Gaussian is ``visible`` if any face sees it, ``radii`` is the max over the
+    faces, and ``means2d`` is a detached [6,N,2] stack of per-face pixel
+    positions; to train the baseline with densification, render the faces of
+    :func:`splatting.cubemap_faces` one by one with :func:`render` instead."""
+    dtype, device = means.dtype, means.device
+    if face_size is None:
+        face_size = max(2, int(round(width / 4)))
+    viewmat = viewmat.to(device=device, dtype=dtype)
+    imgs, alphas, depths, m2d, radii, vis = [], [], [], [], [], []
+    for fv, cam in cubemap_faces(face_size, dtype=dtype, device=device):
+        o = render(means, quats, scales, opacities, colors, fv @ viewmat, cam, sh_degree=sh_degree,
+                   background=background, eps2d=eps2d, near=near, backend=backend, tile_size=tile_size)
+        imgs.append(o.image)
+        alphas.append(o.alpha)
+        depths.append(o.depth)
+        m2d.append(o.means2d)
+        radii.append(o.radii)
+        vis.append(o.visible)
+    idx, wts = _stitch_table(int(height), int(width), face_size, device)
+    wts = wts.to(dtype)
+
+    def stitch(faces, ch):
+        flat = torch.stack(faces).reshape(-1, ch)
+        out = (flat[idx] * wts[..., None]).sum(1)
+        return out.reshape(int(height), int(width), ch)
+
+    return RenderOutput(
+        image=stitch(imgs, 3), alpha=stitch(alphas, 1)[..., 0], depth=stitch(depths, 1)[..., 0],
+        means2d=torch.stack([m.detach() for m in m2d]),
+        radii=torch.stack(radii).max(0).values, visible=torch.stack(vis).any(0), backend=o.backend,
+    )
