@@ -45,6 +45,8 @@ test: setup
 
 bench: setup
 	$(BIN)/pano-pipe bench render
+	$(BIN)/pano-pipe simulate /tmp/pano-bench-sim --height 512 --views 4 --test-views 0 --effects all --profile
+	$(BIN)/pano-pipe simulate /tmp/pano-bench-sim --height 512 --views 4 --test-views 0 --effects none --profile
 	$(BIN)/pano-pipe bench pipeline
 
 clean-venv:
