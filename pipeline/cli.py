@@ -6,7 +6,13 @@ shows the traceback instead.
 
 from __future__ import annotations
 
-import json
+import os
+
+# OpenMP threads that busy-wait between parallel regions made 2 threads 10x slower
+# than 1 on a shared 2-core machine (docs/training.md); must be set before torch loads.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import json  # noqa: E402
 import shutil
 import sys
 from pathlib import Path

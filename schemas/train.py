@@ -20,3 +20,7 @@ class TrainOutput(BaseModel):
     layout_reg: bool
     backend: str
     final_train_psnr: float | None = None
+    preset: Literal["fast", "paper", "quality"] = "fast"
+    lambda_layout: float | None = Field(default=None, description="λ3 actually used (0 with layout_reg off).")
+    extent: float | None = Field(default=None, description="Scene extent (m) scaling the position learning rate.")
+    resumed_from: int | None = Field(default=None, description="Iteration a --resume continued from.")

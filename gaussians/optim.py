@@ -1,0 +1,107 @@
+"""Adam over the Gaussians' tensors, with the row surgery densification needs,
+and the 3DGS position learning-rate schedule.
+
+A small hand-written Adam (the update of torch.optim.Adam, eps 1e-15 as in
+3DGS) because densification appends and removes rows of every parameter and
+its moments; keeping them in one plain dict also makes checkpoints trivial.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from gaussians.model import PARAM_NAMES, Gaussians
+
+__all__ = ["Adam", "expon_lr"]
+
+
+def expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int) -> float:
+    """3DGS's log-linear decay from lr_init (step 0) to lr_final (step max_steps), then constant."""
+    if lr_init == lr_final or max_steps <= 0:
+        return lr_init
+    t = min(max(step / max_steps, 0.0), 1.0)
+    return math.exp(math.log(lr_init) * (1.0 - t) + math.log(lr_final) * t)
+
+
+class Adam:
+    """Adam over Gaussians' PARAM_NAMES tensors, one learning rate per tensor."""
+
+    def __init__(self, lrs: dict[str, float], betas=(0.9, 0.999), eps: float = 1e-15):
+        unknown = set(lrs) - set(PARAM_NAMES)
+        if unknown:
+            raise ValueError(f"unknown parameters {sorted(unknown)}")
+        self.lrs = dict(lrs)
+        self.betas = betas
+        self.eps = eps
+        self.step_count = 0
+        self.exp_avg: dict[str, torch.Tensor] = {}
+        self.exp_avg_sq: dict[str, torch.Tensor] = {}
+
+    def _init_state(self, g: Gaussians) -> None:
+        for k in self.lrs:
+            p = getattr(g, k)
+            if k not in self.exp_avg or self.exp_avg[k].shape != p.shape:
+                self.exp_avg[k] = torch.zeros_like(p.detach())
+                self.exp_avg_sq[k] = torch.zeros_like(p.detach())
+
+    @torch.no_grad()
+    def step(self, g: Gaussians) -> None:
+        """One update of every parameter of `g` that has a gradient."""
+        self._init_state(g)
+        self.step_count += 1
+        b1, b2 = self.betas
+        bc1 = 1.0 - b1**self.step_count
+        bc2 = 1.0 - b2**self.step_count
+        for k, lr in self.lrs.items():
+            p = getattr(g, k)
+            grad = p.grad
+            if grad is None:  # as torch.optim.Adam: no gradient, no update (e.g. SH bands not yet in use)
+                continue
+            m, v = self.exp_avg[k], self.exp_avg_sq[k]
+            m.mul_(b1).add_(grad, alpha=1.0 - b1)
+            v.mul_(b2).addcmul_(grad, grad, value=1.0 - b2)
+            denom = (v.sqrt() / math.sqrt(bc2)).add_(self.eps)
+            p.addcdiv_(m, denom, value=-lr / bc1)
+
+    @staticmethod
+    def zero_grad(g: Gaussians) -> None:
+        for k in PARAM_NAMES:
+            getattr(g, k).grad = None
+
+    # -- row surgery (densification) ---------------------------------------
+    def keep_rows(self, keep: torch.Tensor) -> None:
+        """Drop the moments of pruned Gaussians (`keep`: bool mask over the current rows)."""
+        for d in (self.exp_avg, self.exp_avg_sq):
+            for k in d:
+                d[k] = d[k][keep].contiguous()
+
+    def append_rows(self, count: int) -> None:
+        """New Gaussians start with zero moments (as in 3DGS)."""
+        for d in (self.exp_avg, self.exp_avg_sq):
+            for k in d:
+                z = d[k].new_zeros((count,) + tuple(d[k].shape[1:]))
+                d[k] = torch.cat([d[k], z], 0)
+
+    def reset(self, name: str) -> None:
+        """Zero the moments of one tensor (3DGS does this when it resets opacities)."""
+        if name in self.exp_avg:
+            self.exp_avg[name].zero_()
+            self.exp_avg_sq[name].zero_()
+
+    # -- checkpoints --------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {
+            "lrs": dict(self.lrs), "betas": self.betas, "eps": self.eps, "step_count": self.step_count,
+            "exp_avg": {k: v.clone() for k, v in self.exp_avg.items()},
+            "exp_avg_sq": {k: v.clone() for k, v in self.exp_avg_sq.items()},
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.lrs = dict(state["lrs"])
+        self.betas = tuple(state["betas"])
+        self.eps = float(state["eps"])
+        self.step_count = int(state["step_count"])
+        self.exp_avg = {k: v.clone() for k, v in state["exp_avg"].items()}
+        self.exp_avg_sq = {k: v.clone() for k, v in state["exp_avg_sq"].items()}

@@ -1,0 +1,331 @@
+"""The 360-GS optimisation loop, independent of the pipeline (stages/train.py is its glue).
+
+One iteration (iteration numbers start at 1, as in 3DGS):
+  1. position learning rate from the exponential schedule; every
+     `sh_degree_every` iterations one more SH band (up to `sh_degree`);
+  2. next view from a shuffled stack (refilled when empty);
+  3. render, loss = λ1·L1 + λ2·D-SSIM + λ3·L_layout, backward;
+  4. Adam step (non-finite gradients are zeroed and counted);
+  5. densification statistics; on the schedule clone/split/prune and opacity reset.
+All randomness comes from one torch.Generator whose state the checkpoint keeps,
+so a resumed run continues exactly as an uninterrupted one would.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gaussians.densify import DensifyStats, densify_and_prune, reset_opacity
+from gaussians.losses import layout_loss, photometric_loss, psnr
+from gaussians.model import PARAM_NAMES, Gaussians, render
+from gaussians.optim import Adam, expon_lr
+
+__all__ = ["TrainConfig", "TrainView", "Trainer", "scene_extent", "CHECKPOINT_NAME"]
+
+CHECKPOINT_NAME = "checkpoint.pt"
+CHECKPOINT_VERSION = 1
+
+
+@dataclass
+class TrainConfig:
+    iterations: int = 3000
+    # loss
+    lambda_l1: float = 0.8
+    lambda_dssim: float = 0.2
+    lambda_layout: float = 0.1
+    layout_reg: bool = True
+    # learning rates (3DGS); the position rates are multiplied by the scene extent
+    lr_position_init: float = 1.6e-4
+    lr_position_final: float = 1.6e-6
+    lr_sh_dc: float = 2.5e-3
+    lr_sh_rest: float = 2.5e-3 / 20.0
+    lr_opacity: float = 0.05
+    lr_scaling: float = 5e-3
+    lr_rotation: float = 1e-3
+    extent: float = 1.0
+    # spherical harmonics
+    sh_degree: int = 3
+    sh_degree_every: int = 1000
+    # density control (3DGS schedule)
+    densify_from: int = 500
+    densify_until: int = 15000
+    densify_every: int = 100
+    densify_grad_threshold: float = 2e-4
+    percent_dense: float = 0.01
+    min_opacity: float = 0.005
+    opacity_reset_every: int = 3000
+    max_world_scale: float | None = 0.1  # × extent; prunes after the first opacity reset, as 3DGS
+    max_screen_radius: float | None = None  # radians; None = off
+    max_gaussians: int | None = 200_000
+    # misc
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    seed: int = 0
+    backend: str | None = None
+    log_every: int = 10
+    checkpoint_every: int = 500
+
+    def fingerprint(self) -> str:
+        """What a checkpoint must match to be resumed (everything but logging/checkpoint cadence)."""
+        import hashlib
+
+        d = asdict(self)
+        for k in ("log_every", "checkpoint_every"):
+            d.pop(k)
+        return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+@dataclass
+class TrainView:
+    """One training image: a panorama (EquirectCamera) or a cube face (PinholeCamera)."""
+
+    name: str
+    image: torch.Tensor  # [H,W,3] float in [0,1]
+    viewmat: torch.Tensor  # [4,4] world-to-camera
+    camera: object
+
+
+def scene_extent(points: np.ndarray | torch.Tensor, low: float = 1.0, high: float = 99.0) -> float:
+    """Half the diagonal of the (1st–99th percentile) bounding box of `points`, at least 0.1 m:
+    the scene size 3DGS scales position learning rates and size thresholds by."""
+    p = np.asarray(points.detach().cpu() if isinstance(points, torch.Tensor) else points, dtype=np.float64)
+    if p.shape[0] == 0:
+        return 1.0
+    lo, hi = np.percentile(p, low, axis=0), np.percentile(p, high, axis=0)
+    return float(max(0.5 * np.linalg.norm(hi - lo), 0.1))
+
+
+@dataclass
+class _Ema:
+    loss: float | None = None
+    psnr: float | None = None
+
+    def update(self, loss: float, p: float, a: float = 0.4) -> None:
+        self.loss = loss if self.loss is None else a * loss + (1 - a) * self.loss
+        self.psnr = p if self.psnr is None else a * p + (1 - a) * self.psnr
+
+
+class Trainer:
+    def __init__(self, g: Gaussians, views: list[TrainView], cfg: TrainConfig,
+                 log_path: Path | None = None):
+        if not views:
+            raise ValueError("no training views")
+        self.cfg = cfg
+        self.views = views
+        self.g = g.detach()
+        self.g.requires_grad_(True)
+        lr_means = cfg.lr_position_init * cfg.extent
+        self.opt = Adam({
+            "means": lr_means, "quats": cfg.lr_rotation, "log_scales": cfg.lr_scaling,
+            "opacity_logits": cfg.lr_opacity, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_rest,
+        })
+        self.stats = DensifyStats.zeros(len(self.g), dtype=self.g.means.dtype)
+        self.gen = torch.Generator().manual_seed(int(cfg.seed))
+        self.iteration = 0
+        self.active_sh = 0
+        self.stack: list[int] = []
+        self.ema = _Ema()
+        self.records: list[dict] = []
+        self.train_seconds = 0.0
+        self.nonfinite_steps = 0
+        self.log_path = log_path
+        self._bg = torch.tensor(cfg.background, dtype=self.g.means.dtype)
+        self.last_loss: float | None = None
+        #: Extra identity a checkpoint must match (e.g. a hash of the initial model and images).
+        self.extra_fingerprint = ""
+        self._in_step = False
+
+    # -- one iteration -------------------------------------------------------
+    def _next_view(self) -> TrainView:
+        if not self.stack:
+            self.stack = torch.randperm(len(self.views), generator=self.gen).tolist()
+        return self.views[self.stack.pop()]
+
+    def step(self) -> dict:
+        self._in_step = True  # cleared only when the whole iteration is done (see _consistent)
+        cfg = self.cfg
+        self.iteration += 1
+        it = self.iteration
+        self.opt.lrs["means"] = expon_lr(it, cfg.lr_position_init * cfg.extent, cfg.lr_position_final * cfg.extent,
+                                         cfg.iterations)
+        if cfg.sh_degree_every > 0 and it % cfg.sh_degree_every == 0:
+            self.active_sh = min(self.active_sh + 1, cfg.sh_degree, self.g.sh_degree)
+        view = self._next_view()
+        g = self.g
+        out = render(g, view.viewmat, view.camera, backend=cfg.backend, background=self._bg,
+                     sh_degree=self.active_sh)
+        pred = out.image
+        photo, l1, s = photometric_loss(pred, view.image, cfg.lambda_l1, cfg.lambda_dssim)
+        loss = photo
+        lay = None
+        if cfg.layout_reg and cfg.lambda_layout > 0 and bool(g.is_layout.any()):
+            lay = layout_loss(g.means, g.u0, g.normals, g.is_layout)
+            loss = loss + cfg.lambda_layout * lay
+        if out.means2d.requires_grad:
+            out.means2d.retain_grad()
+        loss.backward()
+
+        with torch.no_grad():
+            bad = False
+            for k in PARAM_NAMES:
+                p = getattr(g, k)
+                if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
+                    bad = True
+                    torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+            self.nonfinite_steps += int(bad)
+            self.opt.step(g)
+            Adam.zero_grad(g)
+            # quaternions: keep them away from zero (the renderer copes, Adam's steps would not)
+            qn = torch.linalg.vector_norm(g.quats, dim=-1, keepdim=True)
+            g.quats.copy_(torch.where(qn > 1e-8, g.quats, torch.tensor([1.0, 0, 0, 0], dtype=g.quats.dtype)))
+
+            if it < cfg.densify_until:
+                self.stats.add(out.means2d.grad if out.means2d.requires_grad else None, out.visible, out.radii,
+                               view.camera.pixel_scale[0])
+                if it >= cfg.densify_from and it % cfg.densify_every == 0:
+                    after_reset = cfg.opacity_reset_every > 0 and it > cfg.opacity_reset_every
+                    res = densify_and_prune(
+                        g, self.opt, self.stats,
+                        grad_threshold=cfg.densify_grad_threshold, percent_dense=cfg.percent_dense,
+                        extent=cfg.extent, min_opacity=cfg.min_opacity,
+                        max_world_scale=(cfg.max_world_scale * cfg.extent
+                                         if after_reset and cfg.max_world_scale else None),
+                        max_screen_radius=cfg.max_screen_radius if after_reset else None,
+                        max_gaussians=cfg.max_gaussians, generator=self.gen,
+                    )
+                    self.g = res.gaussians
+                    self.stats = DensifyStats.zeros(len(self.g), dtype=self.g.means.dtype)
+                if cfg.opacity_reset_every > 0 and it % cfg.opacity_reset_every == 0:
+                    reset_opacity(self.g, self.opt)
+
+        lv = float(loss.detach())
+        p = psnr(pred, view.image)
+        self.ema.update(lv, p)
+        self.last_loss = lv
+        self._in_step = False
+        return {
+            "iteration": it, "loss": lv, "l1": float(l1.detach()), "ssim": float(s.detach()),
+            "layout": None if lay is None else float(lay.detach()), "psnr": p, "view": view.name,
+        }
+
+    # -- the loop --------------------------------------------------------------
+    def train(self, until: int | None = None,
+              on_step: Callable[[Trainer, dict], None] | None = None,
+              checkpoint_path: Path | None = None) -> None:
+        """Iterate up to `until` (default cfg.iterations). Checkpoints every
+        cfg.checkpoint_every iterations into `checkpoint_path`, and on
+        KeyboardInterrupt (saved at the last completed iteration, then re-raised)."""
+        until = self.cfg.iterations if until is None else min(until, self.cfg.iterations)
+        t_last = time.perf_counter()
+        try:
+            while self.iteration < until:
+                info = self.step()
+                now = time.perf_counter()
+                self.train_seconds += now - t_last
+                t_last = now
+                it = self.iteration
+                if it % max(self.cfg.log_every, 1) == 0 or it == until or it == 1:
+                    self._log(info)
+                if checkpoint_path is not None and self.cfg.checkpoint_every > 0 and \
+                        it % self.cfg.checkpoint_every == 0 and it < self.cfg.iterations:
+                    self.save_checkpoint(checkpoint_path)
+                if on_step is not None:
+                    on_step(self, info)
+        except KeyboardInterrupt:
+            # An interrupt inside step() leaves a half-updated state, which is never saved
+            # (the last periodic checkpoint stays); between iterations the state is whole.
+            if checkpoint_path is not None and self._consistent():
+                self.save_checkpoint(checkpoint_path)
+            raise
+
+    def _consistent(self) -> bool:
+        return not self._in_step
+
+    def _log(self, info: dict) -> None:
+        rec = {
+            "iteration": info["iteration"], "loss": info["loss"], "l1": info["l1"], "ssim": info["ssim"],
+            "layout": info["layout"], "psnr": info["psnr"], "ema_loss": self.ema.loss, "ema_psnr": self.ema.psnr,
+            "num_gaussians": len(self.g), "sh_degree": self.active_sh, "lr_means": self.opt.lrs["means"],
+            "seconds": round(self.train_seconds, 3), "nonfinite_steps": self.nonfinite_steps,
+        }
+        self.records.append(rec)
+        if self.log_path is not None:
+            with open(self.log_path, "a") as f:
+                f.write(json.dumps(rec) + "\n")
+
+    # -- evaluation helpers ------------------------------------------------------
+    @torch.no_grad()
+    def mean_psnr(self, views: list[TrainView] | None = None) -> float:
+        vals = []
+        for v in views or self.views:
+            out = render(self.g, v.viewmat, v.camera, backend=self.cfg.backend, background=self._bg,
+                         sh_degree=self.active_sh)
+            vals.append(psnr(out.image, v.image))
+        return float(np.mean(vals))
+
+    def final_gaussians(self) -> Gaussians:
+        """The trained model, detached; it keeps all its SH bands (those never activated are zero)."""
+        return self.g.detach()
+
+    # -- checkpoints ------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {
+            "version": CHECKPOINT_VERSION,
+            "fingerprint": self.cfg.fingerprint() + self.extra_fingerprint,
+            "iteration": self.iteration,
+            "gaussians": {k: v.detach().clone() for k, v in self.g.tensors().items()},
+            "opt": self.opt.state_dict(),
+            "stats": self.stats.state_dict(),
+            "gen": self.gen.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "np_rng": np.random.get_state(),
+            "active_sh": self.active_sh,
+            "stack": list(self.stack),
+            "ema": asdict(self.ema),
+            "records": list(self.records),
+            "train_seconds": self.train_seconds,
+            "nonfinite_steps": self.nonfinite_steps,
+        }
+
+    def save_checkpoint(self, path: Path) -> None:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        torch.save(self.state_dict(), tmp)
+        os.replace(tmp, path)
+
+    def load_state_dict(self, s: dict) -> None:
+        if s.get("version") != CHECKPOINT_VERSION:
+            raise ValueError(f"checkpoint version {s.get('version')} is not {CHECKPOINT_VERSION}")
+        if s["fingerprint"] != self.cfg.fingerprint() + self.extra_fingerprint:
+            raise ValueError("checkpoint was made with different training settings")
+        self.iteration = int(s["iteration"])
+        self.g = Gaussians(**s["gaussians"])
+        self.g.requires_grad_(True)
+        self.opt.load_state_dict(s["opt"])
+        self.stats = DensifyStats.from_state(s["stats"])
+        self.gen.set_state(s["gen"])
+        torch.set_rng_state(s["torch_rng"])
+        np.random.set_state(s["np_rng"])
+        self.active_sh = int(s["active_sh"])
+        self.stack = list(s["stack"])
+        self.ema = _Ema(**s["ema"])
+        self.records = list(s["records"])
+        self.train_seconds = float(s["train_seconds"])
+        self.nonfinite_steps = int(s["nonfinite_steps"])
+
+    def load_checkpoint(self, path: Path) -> None:
+        s = torch.load(Path(path), map_location="cpu", weights_only=False)
+        self.load_state_dict(s)
+        if self.log_path is not None:  # the log restarts from the checkpoint's records
+            with open(self.log_path, "w") as f:
+                for rec in self.records:
+                    f.write(json.dumps(rec) + "\n")
+

@@ -1,0 +1,409 @@
+"""train: layout-guided 360° Gaussian splatting (the optimisation of 360-GS).
+
+Glue only: resolve the preset and the initialisation, load the training
+images, run gaussians.trainer.Trainer with a rich progress bar, checkpoints
+(every `checkpoint_every` iterations and on Ctrl-C) and --resume, and export
+the standard 3DGS PLY. The math lives in gaussians/. See docs/training.md.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import signal
+import threading
+import time
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+
+from gaussians.init import from_cloud, random_points
+from gaussians.model import Gaussians
+from gaussians.ply import save_ply
+from gaussians.trainer import CHECKPOINT_NAME, Trainer, TrainConfig, TrainView, scene_extent
+from panogeom.equirect import angles_to_pixel, dirs_to_angles
+from panogeom.images import read_rgb
+from pipeline.errors import PanoError
+from pipeline.stage import StageContext
+from schemas.scene import Scene, View
+from schemas.train import TrainOutput
+
+Output = TrainOutput
+
+
+#: What each preset fills in for the parameters left unset (None).
+PRESETS: dict[str, dict] = {
+    # CPU default: small panoramas, short schedule, modest cap. On the demo scene the held-out PSNR
+    # plateaus after ~1200 iterations (docs/training.md), so 2000 keep make demo well under 10 minutes.
+    "fast": dict(height=128, iterations=2000, densify_from=500, densify_until=1500, opacity_reset_every=3000,
+                 max_gaussians=50_000, random_points=20_000, max_init_points=30_000),
+    # the paper's setting (512×1024, 7k iterations; 3DGS densifies up to 15k, i.e. all of it)
+    "paper": dict(height=512, iterations=7000, densify_from=500, densify_until=15_000, opacity_reset_every=3000,
+                  max_gaussians=1_000_000, random_points=100_000, max_init_points=0),
+    # the full 3DGS schedule
+    "quality": dict(height=512, iterations=30_000, densify_from=500, densify_until=15_000,
+                    opacity_reset_every=3000, max_gaussians=3_000_000, random_points=100_000, max_init_points=0),
+}
+
+
+class Params(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    preset: Literal["fast", "paper", "quality"] = Field(
+        default="fast", description="Fills every setting left unset: fast (CPU), paper (512x1024, 7k), quality (30k).")
+    iterations: int | None = Field(default=None, ge=1)
+    height: int | None = Field(default=None, ge=8, description="Training panorama height; width = 2 x height.")
+    init: Literal["auto", "random", "layout", "depth", "layout+depth"] = Field(
+        default="auto",
+        description="auto = layout+depth with the align stage, layout with sampling only, random otherwise.")
+    projection: Literal["360", "cubemap"] = Field(
+        default="360", description="360 = equirectangular splatting; cubemap = six 90° pinhole faces (3D-GS).")
+    layout_reg: bool = Field(default=True, description="L_layout on/off (ablation).")
+    lambda_l1: float = Field(default=0.8, ge=0)
+    lambda_dssim: float = Field(default=0.2, ge=0)
+    lambda_layout: float | None = Field(
+        default=None, ge=0, description="λ3; default 0.1 for <= 8 training views, 0.01 above (paper).")
+    lr_position_init: float = Field(default=1.6e-4, gt=0, description="× scene extent.")
+    lr_position_final: float = Field(default=1.6e-6, gt=0, description="× scene extent.")
+    lr_sh_dc: float = Field(default=2.5e-3, ge=0)
+    lr_sh_rest: float = Field(default=2.5e-3 / 20, ge=0)
+    lr_opacity: float = Field(default=0.05, ge=0)
+    lr_scaling: float = Field(default=5e-3, ge=0)
+    lr_rotation: float = Field(default=1e-3, ge=0)
+    extent: float | None = Field(
+        default=None, gt=0, description="Scene size (m); default half the diagonal of the initial points' box.")
+    sh_degree: int = Field(default=3, ge=0, le=3)
+    sh_degree_every: int = Field(default=1000, ge=1)
+    densify_from: int | None = Field(default=None, ge=0)
+    densify_until: int | None = Field(default=None, ge=0)
+    densify_every: int = Field(default=100, ge=1)
+    densify_grad_threshold: float = Field(
+        default=2e-4, gt=0, description="On the angular view-space gradient (resolution independent).")
+    percent_dense: float = Field(default=0.01, gt=0)
+    min_opacity: float = Field(default=0.005, ge=0, lt=1)
+    opacity_reset_every: int | None = Field(default=None, ge=0, description="0 = never.")
+    max_world_scale: float | None = Field(
+        default=0.1, gt=0, description="Prune scale > this × extent after the first opacity reset (None = off).")
+    max_screen_radius: float | None = Field(
+        default=None, gt=0, description="Prune a screen radius > this (radians) after the first reset.")
+    max_gaussians: int | None = Field(default=None, ge=1, description="Densification cap.")
+    random_points: int | None = Field(default=None, ge=1, description="Gaussians of the random init.")
+    max_init_points: int | None = Field(
+        default=None, ge=0, description="Random subset of a larger init cloud (0 = keep all).")
+    init_opacity: float = Field(default=0.1, gt=0, lt=1)
+    layout_flatten: float = Field(default=0.1, gt=0, le=1, description="Thickness / width of layout Gaussians.")
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    seed: int = Field(default=0, ge=0)
+    backend: Literal["cpp", "torch"] | None = Field(default=None, description="splatting backend; None = its default.")
+    threads: int | None = Field(default=None, ge=1, description="torch threads (None = leave as is).")
+    log_every: int = Field(default=10, ge=1)
+    checkpoint_every: int = Field(default=500, ge=0, description="0 = only on Ctrl-C.")
+
+    def resolved(self, key: str):
+        v = getattr(self, key)
+        return PRESETS[self.preset][key] if v is None else v
+
+
+def skip_reason(scene: Scene, params: Params) -> str | None:
+    return None  # every scene with training views trains
+
+
+# ----------------------------------------------------------------------------- pure helpers
+
+
+def default_lambda_layout(num_train_views: int) -> float:
+    """The paper's λ3: 0.1 for sparse captures (≤ 8 panoramas), 0.01 for dense ones."""
+    return 0.1 if num_train_views <= 8 else 0.01
+
+
+def resolve_init(requested: str, has_align: bool, align_has_layout: bool, align_has_depth: bool,
+                 has_sampling: bool) -> str:
+    """The initialisation to use; raises ValueError (with why) when the requested one is unavailable."""
+    if requested == "auto":
+        if has_align and align_has_layout and align_has_depth:
+            return "layout+depth"
+        if has_align and align_has_depth:
+            return "depth"
+        if has_sampling or (has_align and align_has_layout):
+            return "layout"
+        return "random"
+    if requested == "layout+depth" and not (has_align and align_has_layout and align_has_depth):
+        raise ValueError("init 'layout+depth' needs the align stage with both layout and depth points")
+    if requested == "depth" and not (has_align and align_has_depth):
+        raise ValueError("init 'depth' needs the align stage (depth points)")
+    if requested == "layout" and not (has_sampling or (has_align and align_has_layout)):
+        raise ValueError("init 'layout' needs the sampling stage (or an align cloud with layout points)")
+    return requested
+
+
+def select_cloud(init: str, align: dict | None, sampling: dict | None) -> dict:
+    """The points an init uses: align's cloud whole, only its depth points, or the layout points."""
+    def subset(c: dict, mask: np.ndarray) -> dict:
+        return {k: v[mask] for k, v in c.items()}
+
+    if init == "layout+depth":
+        return align
+    if init == "depth":
+        return subset(align, ~align["is_layout"])
+    if init == "layout":
+        if sampling is not None:
+            return sampling
+        return subset(align, align["is_layout"])
+    raise ValueError(init)
+
+
+def subsample_cloud(cloud: dict, max_points: int, seed: int) -> dict:
+    """A uniform random subset of at most `max_points` points (same seed, same subset)."""
+    n = len(cloud["points"])
+    if max_points <= 0 or n <= max_points:
+        return cloud
+    idx = np.sort(np.random.default_rng(seed).choice(n, size=max_points, replace=False))
+    return {k: v[idx] for k, v in cloud.items()}
+
+
+def cube_face_image(pano: np.ndarray, face_viewmat: np.ndarray, camera) -> np.ndarray:
+    """Resample a cube face (splatting.cubemap_faces' rotation and PinholeCamera) from an
+    equirectangular image with cv2.remap (bilinear, wrapping across the ±180° seam)."""
+    h, w = pano.shape[:2]
+    fh, fw = int(camera.height), int(camera.width)
+    c, r = np.meshgrid(np.arange(fw) + 0.5, np.arange(fh) + 0.5)
+    d_face = np.stack([(c - camera.cx) / camera.fx, (r - camera.cy) / camera.fy, np.ones_like(c)], -1)
+    rot = np.asarray(face_viewmat, dtype=np.float64)[:3, :3]
+    d_pano = d_face @ rot  # rows of rot are the face axes in the panorama frame: d_pano = rotᵀ d_face
+    phi, theta = dirs_to_angles(d_pano)
+    col, row = angles_to_pixel(phi, theta, h, w)
+    padded = np.concatenate([pano[:, -1:], pano, pano[:, :1]], axis=1)  # one wrapped column each side
+    mx = (np.mod(col + 0.5, w) - 0.5 + 1.0).astype(np.float32)
+    my = np.clip(row, 0, h - 1).astype(np.float32)
+    return cv2.remap(padded, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def build_views(images: dict[str, np.ndarray], viewmats: dict[str, np.ndarray], projection: str) -> list[TrainView]:
+    """Training views: one equirectangular view per panorama, or six cube faces (face = W/4)."""
+    import splatting
+
+    out = []
+    for name, img in images.items():
+        vm = torch.as_tensor(viewmats[name], dtype=torch.float32)
+        h, w = img.shape[:2]
+        if projection == "360":
+            out.append(TrainView(name, torch.from_numpy(np.ascontiguousarray(img)), vm,
+                                 splatting.EquirectCamera(h, w)))
+            continue
+        for face, (fv, cam) in zip(splatting.CUBEMAP_FACE_NAMES, splatting.cubemap_faces(max(w // 4, 2))):
+            gt = cube_face_image(img, fv.numpy(), cam)
+            out.append(TrainView(f"{name}/{face}", torch.from_numpy(np.ascontiguousarray(gt)), fv @ vm, cam))
+    return out
+
+
+def make_config(p: Params, num_train_views: int, extent: float) -> TrainConfig:
+    iterations = int(p.resolved("iterations"))
+    reset = p.resolved("opacity_reset_every")
+    return TrainConfig(
+        iterations=iterations,
+        lambda_l1=p.lambda_l1, lambda_dssim=p.lambda_dssim,
+        lambda_layout=p.lambda_layout if p.lambda_layout is not None else default_lambda_layout(num_train_views),
+        layout_reg=p.layout_reg,
+        lr_position_init=p.lr_position_init, lr_position_final=p.lr_position_final,
+        lr_sh_dc=p.lr_sh_dc, lr_sh_rest=p.lr_sh_rest, lr_opacity=p.lr_opacity, lr_scaling=p.lr_scaling,
+        lr_rotation=p.lr_rotation, extent=float(extent),
+        sh_degree=p.sh_degree, sh_degree_every=p.sh_degree_every,
+        densify_from=int(p.resolved("densify_from")), densify_until=int(p.resolved("densify_until")),
+        densify_every=p.densify_every, densify_grad_threshold=p.densify_grad_threshold,
+        percent_dense=p.percent_dense, min_opacity=p.min_opacity, opacity_reset_every=int(reset),
+        max_world_scale=p.max_world_scale, max_screen_radius=p.max_screen_radius,
+        max_gaussians=p.resolved("max_gaussians"),
+        background=tuple(float(x) for x in p.background), seed=p.seed, backend=p.backend,
+        log_every=p.log_every, checkpoint_every=p.checkpoint_every,
+    )
+
+
+def init_fingerprint(g: Gaussians, views: list[TrainView]) -> str:
+    """Hash of the initial model and training images: a checkpoint only resumes the same run."""
+    h = hashlib.sha256()
+    for k, v in g.tensors().items():
+        h.update(k.encode())
+        h.update(v.detach().cpu().contiguous().numpy().tobytes())
+    for v in views:
+        h.update(v.name.encode())
+        h.update(v.image.contiguous().numpy().tobytes())
+        h.update(v.viewmat.contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+# ----------------------------------------------------------------------------- glue
+
+
+def _load_cloud(ctx: StageContext, name: str) -> dict | None:
+    from stages.cloud_io import read_cloud
+
+    loaded = ctx.inputs.get(name)
+    if loaded is None:
+        return None
+    return read_cloud(loaded.path(loaded.data.cloud.npz))
+
+
+def initial_gaussians(ctx: StageContext, p: Params, views: list[View]) -> tuple[Gaussians, str]:
+    align = _load_cloud(ctx, "align")
+    sampling = _load_cloud(ctx, "sampling")
+    try:
+        init = resolve_init(
+            p.init, has_align=align is not None,
+            align_has_layout=align is not None and bool(align["is_layout"].any()),
+            align_has_depth=align is not None and bool((~align["is_layout"]).any()),
+            has_sampling=sampling is not None and len(sampling["points"]) > 0,
+        )
+    except ValueError as e:
+        raise PanoError("train.init", str(e)) from None
+    if init == "random":
+        union = ctx.inputs.get("union")
+        rooms = union.data.rooms if union is not None else None
+        positions = np.stack([v.position for v in views])
+        g = random_points(int(p.resolved("random_points")), p.seed, rooms=rooms or None,
+                          camera_positions=positions, sh_degree=p.sh_degree, init_opacity=p.init_opacity)
+    else:
+        cloud = subsample_cloud(select_cloud(init, align, sampling), int(p.resolved("max_init_points")), p.seed)
+        if len(cloud["points"]) == 0:
+            raise PanoError("train.init", f"init {init!r}: the point cloud is empty")
+        g = from_cloud(cloud, sh_degree=p.sh_degree, init_opacity=p.init_opacity, layout_flatten=p.layout_flatten)
+    return g, init
+
+
+def load_images(scene: Scene, views: list[View], height: int) -> dict[str, np.ndarray]:
+    out = {}
+    for v in views:
+        path = scene.image_path(v)
+        try:
+            out[v.name] = read_rgb(path, size=(height, 2 * height))
+        except ValueError:
+            raise PanoError(path, "unreadable image") from None
+    return out
+
+
+class _DeferredInterrupt:
+    """Ctrl-C between iterations: the first one sets a flag the loop checks (so the
+    checkpoint is written at a consistent state), a second one interrupts at once."""
+
+    def __init__(self):
+        self.requested = False
+        self._old = None
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            self._old = signal.getsignal(signal.SIGINT)
+            signal.signal(signal.SIGINT, self._handler)
+        return self
+
+    def _handler(self, signum, frame):
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def __exit__(self, *exc):
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+        return False
+
+
+def run(ctx: StageContext) -> TrainOutput:
+    from rich.progress import TextColumn
+
+    from pipeline.console import console, make_progress
+
+    p: Params = ctx.params
+    if p.threads:
+        torch.set_num_threads(p.threads)
+    views = ctx.scene.manifest.train_views()
+    height = int(p.resolved("height"))
+    images = load_images(ctx.scene, views, height)
+    train_views = build_views(images, {v.name: v.viewmat for v in views}, p.projection)
+    g, init = initial_gaussians(ctx, p, views)
+    extent = p.extent if p.extent is not None else scene_extent(g.means)
+    cfg = make_config(p, len(views), extent)
+
+    log_path = ctx.out_dir / "train_log.jsonl"
+    trainer = Trainer(g, train_views, cfg, log_path=log_path)
+    trainer.extra_fingerprint = init_fingerprint(g, train_views)
+    scratch = Path(ctx.scratch_dir) if ctx.scratch_dir is not None else None
+    ckpt = scratch / CHECKPOINT_NAME if scratch is not None else None
+    resumed_from = None
+    if ctx.resume:
+        if ckpt is None or not ckpt.is_file():
+            ctx.warn("--resume: no training checkpoint found; training from the start")
+        else:
+            try:
+                trainer.load_checkpoint(ckpt)
+                resumed_from = trainer.iteration
+                console.print(f"resuming training from iteration {resumed_from} ({ckpt})")
+            except (ValueError, KeyError, RuntimeError) as e:
+                ctx.warn(f"--resume: checkpoint {ckpt} not usable ({e}); training from the start")
+                trainer = Trainer(g, train_views, cfg, log_path=log_path)
+                trainer.extra_fingerprint = init_fingerprint(g, train_views)
+
+    progress = make_progress(
+        TextColumn("loss {task.fields[loss]}"),
+        TextColumn("PSNR {task.fields[psnr]}"),
+        TextColumn("{task.fields[count]} G"),
+        TextColumn("{task.fields[rate]} it/s"),
+    )
+    t0 = time.perf_counter()
+    start_it = trainer.iteration
+    with _DeferredInterrupt() as stop, progress:
+        task = progress.add_task(f"train ({init}, {p.projection})", total=cfg.iterations, completed=start_it,
+                                 loss="-", psnr="-", count=len(trainer.g), rate="-")
+
+        def on_step(tr: Trainer, info: dict) -> None:
+            done = tr.iteration - start_it
+            rate = done / max(time.perf_counter() - t0, 1e-9)
+            progress.update(task, completed=tr.iteration, loss=f"{tr.ema.loss:.4f}", psnr=f"{tr.ema.psnr:.2f}",
+                            count=len(tr.g), rate=f"{rate:.1f}")
+            if stop.requested:
+                console.print(f"interrupted: checkpoint at iteration {tr.iteration} -> {ckpt}; "
+                              "rerun with --resume to continue")
+                raise KeyboardInterrupt
+
+        trainer.train(on_step=on_step, checkpoint_path=ckpt)
+
+    final = trainer.final_gaussians()
+    save_ply(ctx.out_dir / "point_cloud.ply", final)
+    with open(log_path, "w") as f:  # the whole run's records, also across a resume
+        for rec in trainer.records:
+            f.write(json.dumps(rec) + "\n")
+    final_psnr = trainer.mean_psnr()
+    if ckpt is not None and ckpt.is_file():
+        ckpt.unlink()  # finished: the artifact supersedes the checkpoint
+    if trainer.nonfinite_steps:
+        ctx.warn(f"{trainer.nonfinite_steps} iterations had non-finite gradients (zeroed)")
+    return TrainOutput(
+        ply="point_cloud.ply",
+        log="train_log.jsonl",
+        num_gaussians=len(final),
+        iterations=trainer.iteration,
+        train_seconds=round(trainer.train_seconds, 3),
+        resolution=(height, 2 * height),
+        sh_degree=final.sh_degree,
+        init=init,
+        projection=p.projection,
+        layout_reg=p.layout_reg,
+        backend=_backend_name(p.backend),
+        final_train_psnr=final_psnr,
+        preset=p.preset,
+        lambda_layout=cfg.lambda_layout if p.layout_reg else 0.0,
+        extent=cfg.extent,
+        resumed_from=resumed_from,
+    )
+
+
+def _backend_name(requested: str | None) -> str:
+    if requested:
+        return requested
+    try:
+        from splatting import raster_cpp
+
+        return "cpp" if raster_cpp.load() is not None else "torch"
+    except Exception:  # noqa: BLE001 (the name is informative only)
+        return "torch"

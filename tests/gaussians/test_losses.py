@@ -1,0 +1,87 @@
+"""L_layout (value and gradient, including the 0/0 at μ = u0), SSIM and PSNR."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from gaussians.losses import layout_loss, photometric_loss, psnr, ssim
+
+
+def test_layout_loss_at_u0_is_zero_with_a_finite_gradient():
+    u0 = torch.tensor([[1.0, 2.0, 3.0], [0.5, -1.0, 2.0]], dtype=torch.float64)
+    mu = u0.clone().requires_grad_(True)
+    n = torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, -2.0]], dtype=torch.float64)
+    val = layout_loss(mu, u0, n)
+    (grad,) = torch.autograd.grad(val, mu)
+    assert val.item() == 0.0
+    assert torch.all(torch.isfinite(grad))
+    assert torch.all(grad == 0)
+    # the same in float32, as in training
+    mu32 = u0.float().clone().requires_grad_(True)
+    (g32,) = torch.autograd.grad(layout_loss(mu32, u0.float(), n.float()), mu32)
+    assert torch.all(torch.isfinite(g32))
+
+
+def test_layout_loss_is_the_cosine_to_the_normal():
+    u0 = torch.zeros(4, 3, dtype=torch.float64)
+    n = torch.tensor([[0.0, 2.0, 0.0]] * 4, dtype=torch.float64)  # need not be unit
+    mu = torch.tensor([[0.3, 0.0, 0.4],  # in the plane: 0
+                       [0.0, -0.7, 0.0],  # along the normal: 1
+                       [1.0, 1.0, 0.0],  # 45 degrees
+                       [0.0, 0.1, math.sqrt(3) * 0.1]], dtype=torch.float64)  # 60 degrees
+    vals = [layout_loss(mu[i : i + 1], u0[i : i + 1], n[i : i + 1]).item() for i in range(4)]
+    assert vals == pytest.approx([0.0, 1.0, math.sqrt(0.5), 0.5], abs=1e-12)
+    assert layout_loss(mu, u0, n).item() == pytest.approx(sum(vals) / 4, abs=1e-12)
+    # the mask selects layout Gaussians only
+    assert layout_loss(mu, u0, n, torch.tensor([False, True, False, False])).item() == pytest.approx(1.0)
+    empty = layout_loss(mu.requires_grad_(True), u0, n, torch.zeros(4, dtype=torch.bool))
+    assert empty.item() == 0.0 and empty.requires_grad
+
+
+def test_layout_loss_gradient_matches_finite_differences():
+    gen = torch.Generator().manual_seed(0)
+    u0 = torch.randn(6, 3, generator=gen, dtype=torch.float64)
+    mu = (u0 + 0.3 * torch.randn(6, 3, generator=gen, dtype=torch.float64)).requires_grad_(True)
+    n = torch.randn(6, 3, generator=gen, dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda m: layout_loss(m, u0, n), (mu,))
+    # analytic: d/dmu |n.d|/(|n||d|) = sign(n.d) (n/(|n||d|) - (n.d) d/(|n||d|^3))
+    d = (mu - u0).detach()
+    nd = (n * d).sum(-1, keepdim=True)
+    dn, nn = d.norm(dim=-1, keepdim=True), n.norm(dim=-1, keepdim=True)
+    expect = torch.sign(nd) * (n / (nn * dn) - nd * d / (nn * dn**3)) / 6
+    (got,) = torch.autograd.grad(layout_loss(mu, u0, n), mu)
+    torch.testing.assert_close(got, expect, rtol=1e-9, atol=1e-12)
+
+
+def _ssim_reference(x, y):
+    """SSIM with scipy's Gaussian filter (σ 1.5, radius 5, zero outside): an independent check."""
+    from scipy.ndimage import gaussian_filter
+
+    def f(img):
+        return np.stack([gaussian_filter(img[..., c].astype(np.float64), 1.5, truncate=5 / 1.5, mode="constant")
+                         for c in range(img.shape[-1])], -1)
+
+    mx, my = f(x), f(y)
+    sxx, syy, sxy = f(x * x) - mx**2, f(y * y) - my**2, f(x * y) - mx * my
+    c1, c2 = 0.01**2, 0.03**2
+    return float((((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx**2 + my**2 + c1) * (sxx + syy + c2))).mean())
+
+
+def test_ssim_and_psnr_references():
+    gen = torch.Generator().manual_seed(1)
+    a = torch.rand(32, 64, 3, generator=gen)
+    assert ssim(a, a).item() == pytest.approx(1.0, abs=1e-6)
+    b = (a + 0.1 * torch.randn(32, 64, 3, generator=gen)).clamp(0, 1)
+    assert ssim(a, b).item() == pytest.approx(_ssim_reference(a.numpy(), b.numpy()), abs=1e-5)
+    worse = (a + 0.3 * torch.randn(32, 64, 3, generator=gen)).clamp(0, 1)
+    assert ssim(a, worse).item() < ssim(a, b).item() < 1.0
+    assert psnr(a, a) == pytest.approx(120.0)
+    c = (a + 0.1).clamp(0, 1)
+    mse = float(((c - a) ** 2).mean())
+    assert psnr(c, a) == pytest.approx(10 * math.log10(1 / mse), rel=1e-6)
+    total, l1, s = photometric_loss(b, a)
+    assert total.item() == pytest.approx(0.8 * (b - a).abs().mean().item() + 0.2 * (1 - s.item()), rel=1e-6)

@@ -1,0 +1,179 @@
+"""The train stage's glue: init choice, outputs, cube faces, Ctrl-C checkpoint and --resume."""
+
+from __future__ import annotations
+
+import json
+import re
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import splatting
+import stages.train as T
+from gaussians import load_ply
+from pipeline.errors import PanoError
+from pipeline.scene_loader import load_scene
+from pipeline.stage import Loaded, StageContext
+from schemas.sampling import SamplingOutput
+from schemas.train import TrainOutput
+from schemas.union import Room, UnionOutput
+from stages.cloud_io import write_cloud
+
+
+def ctx_for(root, tmp_path, params: dict, inputs=None, resume=False, name="out") -> StageContext:
+    out = tmp_path / name
+    out.mkdir(parents=True, exist_ok=True)
+    base = dict(height=16, iterations=12, random_points=300, max_gaussians=2000, densify_from=4,
+                densify_every=4, log_every=2, threads=1)
+    base.update(params)
+    return StageContext(
+        scene=load_scene(root), params=T.Params(**base),
+        inputs=inputs or {"align": None, "sampling": None, "union": None},
+        out_dir=out, scratch_dir=tmp_path / "scratch", resume=resume,
+    )
+
+
+def test_resolve_init_table():
+    r = T.resolve_init
+    assert r("auto", True, True, True, True) == "layout+depth"
+    assert r("auto", True, False, True, False) == "depth"
+    assert r("auto", False, False, False, True) == "layout"
+    assert r("auto", False, False, False, False) == "random"
+    assert r("layout", True, True, True, False) == "layout"
+    assert r("random", True, True, True, True) == "random"
+    for req, args in [("layout+depth", (False, False, False, True)), ("depth", (False, False, False, True)),
+                      ("layout", (False, False, False, False)), ("layout+depth", (True, False, True, False))]:
+        with pytest.raises(ValueError, match=re.escape(f"init {req!r}")):
+            r(req, *args)
+    assert T.default_lambda_layout(4) == 0.1 and T.default_lambda_layout(8) == 0.1
+    assert T.default_lambda_layout(9) == 0.01
+
+
+def test_params_presets_and_validation():
+    p = T.Params()
+    assert (p.resolved("height"), p.resolved("iterations")) == (T.PRESETS["fast"]["height"],
+                                                               T.PRESETS["fast"]["iterations"])
+    assert T.Params(preset="paper").resolved("height") == 512
+    assert T.Params(preset="quality").resolved("iterations") == 30_000
+    assert T.Params(layout_reg="off").layout_reg is False  # the ablation switch reads on/off
+    with pytest.raises(Exception):
+        T.Params(projection="fisheye")
+    with pytest.raises(Exception):
+        T.Params(unknown=1)
+
+
+def test_random_init_run_writes_ply_log_and_artifact(tiny_room, tmp_path):
+    ctx = ctx_for(tiny_room, tmp_path, {})
+    out = T.run(ctx)
+    assert isinstance(out, TrainOutput)
+    assert out.init == "random" and out.projection == "360" and out.iterations == 12
+    assert out.resolution == (16, 32) and out.sh_degree == 3 and out.lambda_layout == 0.1
+    g = load_ply(ctx.out_dir / out.ply)
+    assert len(g) == out.num_gaussians and g.sh_degree == 3
+    lines = [json.loads(s) for s in (ctx.out_dir / out.log).read_text().splitlines()]
+    assert [r["iteration"] for r in lines] == [1, 2, 4, 6, 8, 10, 12]
+    assert out.final_train_psnr is not None and math.isfinite(out.final_train_psnr)
+    assert not (tmp_path / "scratch" / T.CHECKPOINT_NAME).exists()  # removed once finished
+
+
+def test_requested_init_must_be_available(tiny_room, tmp_path):
+    with pytest.raises(PanoError, match="layout"):
+        T.run(ctx_for(tiny_room, tmp_path, {"init": "layout"}))
+
+
+def test_layout_init_from_the_sampling_cloud(tiny_room, tmp_path):
+    # a floor patch under the cameras, as the sampling stage would write it
+    ax = np.linspace(-1.0, 1.0, 15)
+    xx, zz = np.meshgrid(ax, ax)
+    pts = np.stack([xx.ravel(), np.zeros(xx.size), zz.ravel()], 1)
+    sdir = tmp_path / "sampling"
+    files = write_cloud(sdir, pts, np.full_like(pts, 0.4), normals=np.tile([0, -1.0, 0], (len(pts), 1)),
+                        is_layout=np.ones(len(pts), bool))
+    sampling = Loaded(SamplingOutput(cloud=files, density_per_m2=50.0, points_per_surface={"floor": len(pts)}),
+                      sdir)
+    room = Room(polygon=[(-2, -2), (2, -2), (2, 2), (-2, 2)], floor_y=0.0, ceiling_y=-2.5, views=["v"])
+    union = Loaded(UnionOutput(rooms=[room], floor_plan="f.json", drawing="d.png", area_m2=16.0), tmp_path)
+    out = T.run(ctx_for(tiny_room, tmp_path, {"iterations": 4, "densify_from": 100},
+                        inputs={"align": None, "sampling": sampling, "union": union}))
+    assert out.init == "layout"
+    assert out.num_gaussians == len(pts)
+    # random init uses the union's room as its bounds
+    out2 = T.run(ctx_for(tiny_room, tmp_path, {"iterations": 2, "init": "random", "layout_reg": False},
+                         inputs={"align": None, "sampling": sampling, "union": union}, name="r"))
+    g = load_ply(tmp_path / "r" / out2.ply)
+    assert out2.init == "random" and out2.lambda_layout == 0.0
+    assert g.means[:, 0].abs().max() <= 2.01 and g.means[:, 1].min() >= -2.51
+
+
+def test_cube_face_resampling_matches_the_panorama():
+    # a smooth panorama: colour = a function of the viewing direction
+    h, w = 64, 128
+    phi = ((np.arange(w) + 0.5) / w - 0.5) * 2 * np.pi
+    theta = (0.5 - (np.arange(h) + 0.5) / h) * np.pi
+    P, TH = np.meshgrid(phi, theta)
+    d = np.stack([np.cos(TH) * np.sin(P), -np.sin(TH), np.cos(TH) * np.cos(P)], -1)
+    pano = (0.5 + 0.5 * d * np.array([0.9, 0.8, 0.7])).astype(np.float32)
+    for fv, cam in splatting.cubemap_faces(32):
+        face = T.cube_face_image(pano, fv.numpy(), cam)
+        dirs = cam.pixel_dirs(dtype=torch.float64).numpy()
+        dirs = dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)
+        expect = 0.5 + 0.5 * (dirs @ fv.numpy()[:3, :3]) * np.array([0.9, 0.8, 0.7])
+        assert np.abs(face - expect).max() < 0.03
+
+
+def test_cubemap_projection_trains_on_six_faces(tiny_room, tmp_path):
+    ctx = ctx_for(tiny_room, tmp_path, {"projection": "cubemap", "iterations": 6, "height": 32})
+    out = T.run(ctx)
+    assert out.projection == "cubemap"
+    lines = [json.loads(s) for s in (ctx.out_dir / out.log).read_text().splitlines()]
+    assert all(math.isfinite(r["loss"]) for r in lines)
+    images = T.load_images(ctx.scene, ctx.scene.manifest.train_views(), 32)
+    views = T.build_views(images, {v.name: v.viewmat for v in ctx.scene.manifest.train_views()}, "cubemap")
+    assert len(views) == 6 * 3 and views[0].image.shape == (16, 16, 3)
+    assert views[1].name.endswith("/right")
+
+
+class _InterruptAfter:
+    """Stands in for the Ctrl-C handler: 'pressed' once `n` iterations have completed."""
+
+    n = 7
+
+    def __init__(self):
+        self.calls = 0
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    @property
+    def requested(self):
+        self.calls += 1
+        return self.calls >= self.n
+
+
+def test_ctrl_c_saves_a_checkpoint_and_resume_finishes_identically(tiny_room, tmp_path, monkeypatch):
+    params = {"iterations": 14, "checkpoint_every": 0, "seed": 5}
+    ref = T.run(ctx_for(tiny_room, tmp_path / "a", params))
+    ref_bytes = (tmp_path / "a" / "out" / ref.ply).read_bytes()
+
+    monkeypatch.setattr(T, "_DeferredInterrupt", _InterruptAfter)
+    with pytest.raises(KeyboardInterrupt):
+        T.run(ctx_for(tiny_room, tmp_path / "b", params))
+    ckpt = tmp_path / "b" / "scratch" / T.CHECKPOINT_NAME
+    assert torch.load(ckpt, weights_only=False)["iteration"] == 7
+    monkeypatch.undo()
+
+    out = T.run(ctx_for(tiny_room, tmp_path / "b", params, resume=True, name="out2"))
+    assert out.resumed_from == 7 and out.iterations == 14
+    assert (tmp_path / "b" / "out2" / out.ply).read_bytes() == ref_bytes
+    log = [json.loads(s) for s in (tmp_path / "b" / "out2" / out.log).read_text().splitlines()]
+    assert [r["iteration"] for r in log] == [1, 2, 4, 6, 8, 10, 12, 14]
+
+    # --resume with a changed setting: warned, trained from the start
+    ctx = ctx_for(tiny_room, tmp_path / "b", {**params, "seed": 6}, resume=True, name="out3")
+    T.run(ctx)
+    assert any("resume" in w for w in ctx.warnings)
