@@ -3,16 +3,15 @@
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import time
-import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from pipeline.fsutil import atomic_folder  # a leaf module: no pipeline machinery comes along
 from schemas.scene import SceneManifest, View
 from simulate import effects as fxmod
 from simulate.geometry import PRESET_NAMES, Box, Camera, World, build_world, place_cameras
@@ -209,10 +208,7 @@ def generate_scene(
         timings["furniture"] = time.perf_counter() - t0
     world.boxes = boxes
 
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_dir.parent / f".tmp-{out_dir.name}-{uuid.uuid4().hex[:8]}"
-    tmp.mkdir()
-    try:
+    with atomic_folder(out_dir) as tmp:
         _write_scene(
             tmp,
             name=out_dir.name,
@@ -227,14 +223,6 @@ def generate_scene(
             with_depth=with_depth,
             timings=timings,
         )
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    old = out_dir.parent / f".old-{out_dir.name}-{uuid.uuid4().hex[:8]}"
-    if out_dir.exists():
-        os.replace(out_dir, old)
-    os.replace(tmp, out_dir)
-    shutil.rmtree(old, ignore_errors=True)
     timings["total"] = time.perf_counter() - t_start
     return SimulationResult(
         out_dir=out_dir,
