@@ -27,17 +27,11 @@ import cv2
 import numpy as np
 
 from panogeom.equirect import angles_to_pixel, dirs_to_angles, ray_directions
+from splatting.cameras import CUBEMAP_FACE_AXES, CUBEMAP_FACE_NAMES
 
-FACE_NAMES = ("front", "right", "back", "left", "up", "down")
-#: Rows are the face's x, y, z axes in the panorama camera frame (right-handed: x = y cross z).
-FACE_AXES = {
-    "front": ((1, 0, 0), (0, 1, 0), (0, 0, 1)),
-    "right": ((0, 0, -1), (0, 1, 0), (1, 0, 0)),
-    "back": ((-1, 0, 0), (0, 1, 0), (0, 0, -1)),
-    "left": ((0, 0, 1), (0, 1, 0), (-1, 0, 0)),
-    "up": ((1, 0, 0), (0, 0, 1), (0, -1, 0)),
-    "down": ((1, 0, 0), (0, 0, -1), (0, 1, 0)),
-}
+# The same six faces as the cubemap baseline renders (front, right, back, left, up, down).
+FACE_NAMES = CUBEMAP_FACE_NAMES
+FACE_AXES = CUBEMAP_FACE_AXES
 
 
 def face_rotation(name: str) -> np.ndarray:

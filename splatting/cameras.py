@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["EquirectCamera", "PinholeCamera", "cubemap_faces", "CUBEMAP_FACE_NAMES"]
+__all__ = ["EquirectCamera", "PinholeCamera", "cubemap_faces", "CUBEMAP_FACE_NAMES", "CUBEMAP_FACE_AXES"]
 
 
 @dataclass(frozen=True)
@@ -98,7 +98,7 @@ CUBEMAP_FACE_NAMES = ("front", "right", "back", "left", "up", "down")
 
 # Rows are the face camera's x, y, z axes expressed in the panorama camera frame,
 # so each 3x3 block is the camera-from-panorama rotation of that face.
-_FACE_AXES = {
+CUBEMAP_FACE_AXES = {
     "front": ((1, 0, 0), (0, 1, 0), (0, 0, 1)),
     "right": ((0, 0, -1), (0, 1, 0), (1, 0, 0)),
     "back": ((-1, 0, 0), (0, 1, 0), (0, 0, -1)),
@@ -121,6 +121,6 @@ def cubemap_faces(face_size: int, dtype=torch.float32, device="cpu"):
     out = []
     for name in CUBEMAP_FACE_NAMES:
         m = torch.eye(4, dtype=dtype, device=device)
-        m[:3, :3] = torch.tensor(_FACE_AXES[name], dtype=dtype, device=device)
+        m[:3, :3] = torch.tensor(CUBEMAP_FACE_AXES[name], dtype=dtype, device=device)
         out.append((m, cam))
     return out
