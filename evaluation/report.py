@@ -272,7 +272,10 @@ class _Doc:
         """A row of images with captions: embedded in the HTML, copied beside the Markdown."""
         figs, mds = [], []
         for src, caption in items:
-            dst_name = f"{name_prefix}-{src.stem}.png" if not src.name.startswith(name_prefix) else src.name
+            # gt/, renders/, errors/ and depth/ hold files of the same name: keep the folder in it
+            dst_name = (
+                src.name if src.name.startswith(name_prefix) else f"{name_prefix}-{src.parent.name}-{src.stem}.png"
+            )
             dst = self.img_dir / dst_name
             if src.resolve() != dst.resolve():
                 shutil.copyfile(src, dst)

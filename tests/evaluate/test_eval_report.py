@@ -45,6 +45,7 @@ def test_report_has_every_section(report):
     # every image the Markdown names lies beside it and is a PNG
     names = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)
     assert len(names) == 4 + 1 + 1 + 1  # one view's 4 images, curves, floor plan, durations
+    assert len(set(names)) == len(names)  # gt / render / error / depth are four files, not one
     for n in names:
         assert cv2.imread(str(report.folder / n)) is not None, n
     assert "| mean |" in md
