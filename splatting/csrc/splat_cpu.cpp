@@ -425,6 +425,16 @@ proj::Cam make_cam(torch::Tensor camv) {
   return cam;
 }
 
+// World-to-camera rotation (row-major) and translation out of a 4x4 viewmat.
+template <typename T>
+void split_viewmat(const torch::Tensor& vm, T* R, T* t) {
+  auto acc = vm.accessor<T, 2>();
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) R[3 * i + j] = acc[i][j];
+    t[i] = acc[i][3];
+  }
+}
+
 template <typename T>
 void project_all(const proj::Cam& cam, const T* Rv, const T* tv, const T* means, const T* quats, const T* scales,
                  const T* opac, const T* rgb, int64_t N, T* P, int32_t* bbox, bool* valid, int32_t* radii, T* m2d,
@@ -501,11 +511,7 @@ std::vector<torch::Tensor> render_forward(torch::Tensor means, torch::Tensor qua
   auto vm = viewmat.contiguous();
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project", [&] {
     scalar_t R[9], tv[3];
-    auto acc = vm.accessor<scalar_t, 2>();
-    for (int i = 0; i < 3; ++i) {
-      for (int j = 0; j < 3; ++j) R[3 * i + j] = acc[i][j];
-      tv[i] = acc[i][3];
-    }
+    split_viewmat<scalar_t>(vm, R, tv);
     project_all<scalar_t>(cam, R, tv, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
                           scales.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(), rgb.data_ptr<scalar_t>(), N,
                           P.data_ptr<scalar_t>(), bbox.data_ptr<int32_t>(), valid.data_ptr<bool>(),
@@ -668,11 +674,7 @@ std::vector<torch::Tensor> render_backward(torch::Tensor gcol, torch::Tensor gde
   auto vm = viewmat.contiguous();
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_backward", [&] {
     scalar_t R[9], tv[3];
-    auto acc = vm.accessor<scalar_t, 2>();
-    for (int i = 0; i < 3; ++i) {
-      for (int j = 0; j < 3; ++j) R[3 * i + j] = acc[i][j];
-      tv[i] = acc[i][3];
-    }
+    split_viewmat<scalar_t>(vm, R, tv);
     project_backward_all<scalar_t>(cam, R, tv, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
                                    scales.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(), valid.data_ptr<bool>(),
                                    rot.data_ptr<scalar_t>(), gP.data_ptr<scalar_t>(), N,
