@@ -107,27 +107,31 @@ def _equirect_bbox(n, hx, hy, camera: EquirectCamera):
     hx = hx.double()
     hy = hy.double()
     x, y, z = n.unbind(-1)
-    theta0 = torch.atan2(-y, torch.sqrt(x * x + z * z))
+    hr = torch.sqrt(x * x + z * z)
+    theta0 = torch.atan2(-y, hr)
     phi0 = torch.atan2(x, z)
-    st, ct = torch.sin(theta0), torch.cos(theta0)
+    st, ct = -y, hr  # sin and cos of theta0
     pix = 2 * math.pi / W
     pole = hy * st.abs() >= ct  # theta0 + atan(hy) reaches a pole
-    beta = torch.atan(torch.sqrt(hx * hx + hy * hy))
+    r = torch.sqrt(hx * hx + hy * hy)
+    beta = torch.atan(r)
     num_hi = st + hy * ct
     num_lo = st - hy * ct
-    den_hi = torch.where(num_hi >= 0, torch.sqrt(1 + hy * hy), torch.sqrt(1 + hx * hx + hy * hy))
-    den_lo = torch.where(num_lo <= 0, torch.sqrt(1 + hy * hy), torch.sqrt(1 + hx * hx + hy * hy))
-    tmax = torch.asin(torch.clamp(num_hi / den_hi, -1.0, 1.0))
-    tmin = torch.asin(torch.clamp(num_lo / den_lo, -1.0, 1.0))
-    # margins only absorb rounding (the kernels test every pixel exactly)
-    margin = 1e-3 * pix + 1e-4 * beta
-    tmax = torch.where(pole, theta0 + beta, tmax) + margin
-    tmin = torch.where(pole, theta0 - beta, tmin) - margin
+    den_hi = torch.where(num_hi >= 0, torch.sqrt(1 + hy * hy), torch.sqrt(1 + r * r))
+    den_lo = torch.where(num_lo <= 0, torch.sqrt(1 + hy * hy), torch.sqrt(1 + r * r))
+    s_hi = torch.clamp(num_hi / den_hi, -1.0, 1.0)
+    s_lo = torch.clamp(num_lo / den_lo, -1.0, 1.0)
+    # margins only absorb rounding (the kernels test every pixel exactly); atan(r) <= r
+    margin = 1e-3 * pix + 1e-4 * r
+    tmax = torch.where(pole, theta0 + beta, torch.asin(s_hi)) + margin
+    tmin = torch.where(pole, theta0 - beta, torch.asin(s_lo)) - margin
     r0 = torch.ceil((0.5 - tmax / math.pi) * H - 0.5).clamp(0, H - 1)
     r1 = torch.floor((0.5 - tmin / math.pi) * H - 0.5).clamp(-1, H - 1)
     den = torch.clamp(ct - hy * st.abs(), min=1e-300)
     dphi0 = torch.atan2(hx, den)
-    coslat = torch.clamp(torch.cos(torch.maximum(tmax.abs(), tmin.abs())), min=1e-12)
+    # cos of the latitude bound farthest from the equator, from its sine (cos(t + m) >= cos t - m)
+    smax = torch.maximum(s_hi.abs(), s_lo.abs())
+    coslat = torch.clamp(torch.sqrt(torch.clamp(1 - smax * smax, min=0)) - margin, min=1e-12)
     dphi = dphi0 + 1e-4 * dphi0 + 1e-3 * pix / coslat
     full = pole | (tmax >= math.pi / 2) | (tmin <= -math.pi / 2) | (dphi >= math.pi)
     dphi = torch.clamp(dphi, max=math.pi)

@@ -119,29 +119,44 @@ inline void east_south(const T n[3], T e[3], T s[3]) {
   s[2] = n[0] * e[1] - n[1] * e[0];
 }
 
-// Pixel box (see _equirect_bbox in project.py) ; returns false if empty.
-inline bool equirect_box(const Cam& cam, const double n[3], double hx, double hy, int32_t out[4]) {
+// Pixel box (see _equirect_bbox in project.py) ; returns false if empty. Also returns the
+// centre's longitude and latitude (for means2d). Transcendentals are the hot spot of the
+// projection, so the bounds use the fewest: cos of a latitude bound is taken from its sine,
+// and the angular radius atan(r) is bounded by r where only a margin needs it.
+inline bool equirect_box(const Cam& cam, const double n[3], double hx, double hy, int32_t out[4], double& phi0,
+                         double& theta0) {
   const int H = cam.H, W = cam.W;
-  const double theta0 = std::atan2(-n[1], std::sqrt(n[0] * n[0] + n[2] * n[2]));
-  const double phi0 = std::atan2(n[0], n[2]);
-  const double st = std::sin(theta0), ct = std::cos(theta0);
+  const double hr = std::sqrt(n[0] * n[0] + n[2] * n[2]);
+  theta0 = std::atan2(-n[1], hr);
+  phi0 = std::atan2(n[0], n[2]);
+  const double st = -n[1], ct = hr;  // sin and cos of theta0 (n is a unit vector)
   const double pix = 2 * PI / W;
   const bool pole = hy * std::fabs(st) >= ct;
-  const double beta = std::atan(std::sqrt(hx * hx + hy * hy));
+  const double r = std::sqrt(hx * hx + hy * hy);
   const double num_hi = st + hy * ct, num_lo = st - hy * ct;
-  const double den_hi = num_hi >= 0 ? std::sqrt(1 + hy * hy) : std::sqrt(1 + hx * hx + hy * hy);
-  const double den_lo = num_lo <= 0 ? std::sqrt(1 + hy * hy) : std::sqrt(1 + hx * hx + hy * hy);
-  double tmax = std::asin(std::min(1.0, std::max(-1.0, num_hi / den_hi)));
-  double tmin = std::asin(std::min(1.0, std::max(-1.0, num_lo / den_lo)));
-  const double margin = 1e-3 * pix + 1e-4 * beta;
-  tmax = (pole ? theta0 + beta : tmax) + margin;
-  tmin = (pole ? theta0 - beta : tmin) - margin;
+  const double den_hi = num_hi >= 0 ? std::sqrt(1 + hy * hy) : std::sqrt(1 + r * r);
+  const double den_lo = num_lo <= 0 ? std::sqrt(1 + hy * hy) : std::sqrt(1 + r * r);
+  const double s_hi = std::min(1.0, std::max(-1.0, num_hi / den_hi));
+  const double s_lo = std::min(1.0, std::max(-1.0, num_lo / den_lo));
+  const double margin = 1e-3 * pix + 1e-4 * r;  // atan(r) <= r
+  double tmax, tmin;
+  if (pole) {
+    const double beta = std::atan(r);
+    tmax = theta0 + beta + margin;
+    tmin = theta0 - beta - margin;
+  } else {
+    tmax = std::asin(s_hi) + margin;
+    tmin = std::asin(s_lo) - margin;
+  }
   double r0 = std::ceil((0.5 - tmax / PI) * H - 0.5), r1 = std::floor((0.5 - tmin / PI) * H - 0.5);
   r0 = std::min(std::max(r0, 0.0), (double)(H - 1));
   r1 = std::min(std::max(r1, -1.0), (double)(H - 1));
   const double den = std::max(ct - hy * std::fabs(st), 1e-300);
   const double dphi0 = std::atan2(hx, den);
-  const double coslat = std::max(std::cos(std::max(std::fabs(tmax), std::fabs(tmin))), 1e-12);
+  // cos of the latitude bound farthest from the equator (before the margin, which the
+  // 1e-12 floor and the pixel-sized slack below cover)
+  const double smax = std::max(std::fabs(s_hi), std::fabs(s_lo));
+  const double coslat = std::max(std::sqrt(std::max(1.0 - smax * smax, 0.0)) - margin, 1e-12);
   double dphi = dphi0 + 1e-4 * dphi0 + 1e-3 * pix / coslat;
   bool full = pole || tmax >= PI / 2 || tmin <= -PI / 2 || dphi >= PI;
   dphi = std::min(dphi, PI);

@@ -53,12 +53,22 @@ std::vector<torch::Tensor> bin_gaussians(torch::Tensor bbox, torch::Tensor order
   const int64_t* ord = order.data_ptr<int64_t>();
   auto toff = torch::zeros({ntiles + 1}, torch::kInt64);
   int64_t* off = toff.data_ptr<int64_t>();
+  // Calls f(tile) for every tile the pixel box b touches (columns wrap).
+  auto for_tiles = [&](const int32_t* b, auto&& f) {
+    const int64_t tr0 = b[0] / ts, tr1 = b[1] / ts, tc0 = b[2] / ts, ntc = tile_cols(b, W, ts, ntx);
+    for (int64_t tr = tr0; tr <= tr1; ++tr) {
+      const int64_t row = tr * ntx;
+      for (int64_t j = 0, c = tc0; j < ntc; ++j, c = (c + 1 == ntx ? 0 : c + 1)) f(row + c);
+    }
+  };
+  // Counting needs no order: walk the boxes in memory order (the sorted order is a
+  // random walk through them, paid once below).
   std::vector<int64_t> cnt(ntiles, 0);
-  for (int64_t k = 0; k < nv; ++k) {
-    const int32_t* b = bb + 4 * ord[k];
-    int64_t tr0 = b[0] / ts, tr1 = b[1] / ts, tc0 = b[2] / ts, ntc = tile_cols(b, W, ts, ntx);
-    for (int64_t tr = tr0; tr <= tr1; ++tr)
-      for (int64_t j = 0; j < ntc; ++j) cnt[tr * ntx + (tc0 + j) % ntx]++;
+  {
+    std::vector<uint8_t> listed(bbox.size(0), 0);
+    for (int64_t k = 0; k < nv; ++k) listed[ord[k]] = 1;
+    for (int64_t g = 0; g < bbox.size(0); ++g)
+      if (listed[g]) for_tiles(bb + 4 * g, [&](int64_t t) { cnt[t]++; });
   }
   off[0] = 0;
   for (int64_t t = 0; t < ntiles; ++t) off[t + 1] = off[t] + cnt[t];
@@ -66,11 +76,9 @@ std::vector<torch::Tensor> bin_gaussians(torch::Tensor bbox, torch::Tensor order
   int32_t* tl = tlist.data_ptr<int32_t>();
   std::vector<int64_t> pos(off, off + ntiles);
   for (int64_t k = 0; k < nv; ++k) {
-    int64_t g = ord[k];
-    const int32_t* b = bb + 4 * g;
-    int64_t tr0 = b[0] / ts, tr1 = b[1] / ts, tc0 = b[2] / ts, ntc = tile_cols(b, W, ts, ntx);
-    for (int64_t tr = tr0; tr <= tr1; ++tr)
-      for (int64_t j = 0; j < ntc; ++j) tl[pos[tr * ntx + (tc0 + j) % ntx]++] = (int32_t)g;
+    const int64_t g = ord[k];
+    if (k + 8 < nv) __builtin_prefetch(bb + 4 * ord[k + 8]);
+    for_tiles(bb + 4 * g, [&](int64_t t) { tl[pos[t]++] = (int32_t)g; });
   }
   return {toff, tlist};
 }
@@ -107,7 +115,8 @@ struct G {
 // Used for the hits only, identically in the forward and the backward.
 inline float exp_neg_f32(float x) {
   x = std::max(x, -87.0f);
-  const float n = std::floor(x * 1.44269504088896341f + 0.5f);
+  // n = round(x / ln 2) by the 1.5·2^23 trick (floorf is a libm call in scalar code)
+  const float n = (x * 1.44269504088896341f + 12582912.0f) - 12582912.0f;
   float r = x - n * 0.693359375f;
   r = r - n * -2.12194440e-4f;
   float y = 1.9875691500e-4f;
@@ -128,33 +137,135 @@ inline T gexp(T x) {
   else return std::exp(x);
 }
 
-// Pass 1 of a row segment: power of the Gaussian at every pixel (branch-free so that
-// the compiler vectorises it; directions are stored as three planes). Pixels with
-// c <= C_MIN get +inf (and a NaN, if any, fails the "power <= tau" test later).
-template <typename T>
-inline void row_power(const G<T>& q, const T* __restrict dx, const T* __restrict dy, const T* __restrict dz, int n,
-                      T* __restrict pw, T* __restrict uu, T* __restrict vv, T* __restrict icc) {
-  const T inf = std::numeric_limits<T>::infinity();
-#pragma omp simd
-  for (int j = 0; j < n; ++j) {
+// Columns of a tile row that a Gaussian's pixel box covers: lanes [a0, a1) and the
+// wrapped part [b0, b1), relative to the tile's first column.
+struct Lanes {
+  int a0, a1, b0, b1;
+  bool has(int j) const { return ((j >= a0) & (j < a1)) | ((j >= b0) & (j < b1)); }  // no branches
+};
+
+// The lanes of a tile row that one box needs: an 8-lane window where the box's columns
+// fit in 8 (on a 16-wide tile that halves the work of most small splats), else the row.
+// nl is 16 or 8 (compile-time widths) or 0 (any other tile width: all tw lanes).
+struct Window {
+  int h, nl;  // first lane, width
+  Lanes ln;   // relative to h
+};
+inline Window lane_window(const Lanes& ln, int tw) {
+  int lo = MAX_TILE, hi = 0;
+  if (ln.a0 < ln.a1) lo = std::min(lo, ln.a0), hi = std::max(hi, ln.a1);
+  if (ln.b0 < ln.b1) lo = std::min(lo, ln.b0), hi = std::max(hi, ln.b1);
+  if (tw == 16 && hi - lo <= 8) {
+    const int h = std::min(lo, 8);
+    return {h, 8, {ln.a0 - h, ln.a1 - h, ln.b0 - h, ln.b1 - h}};
+  }
+  return {0, (tw == 16 || tw == 8) ? tw : 0, ln};
+}
+
+// One tile row of the forward, all lanes at once so that the compiler vectorises it:
+// NL lanes (a compile-time tile width, one or two vector registers, no scalar
+// remainder), or n lanes if NL == 0. A lane outside the box, missed by the Gaussian
+// (power > tau, c <= C_MIN, or a NaN) or already saturated gets alpha = 0 through a
+// select, which leaves its sums bit-identical. Directions are stored as three planes.
+// Returns the number of pixels blended; adds the pixels that saturated to `nsat`.
+template <typename T, int NL>
+inline int row_forward(const G<T>& q, const T* __restrict dx, const T* __restrict dy, const T* __restrict dz, int n,
+                       Lanes ln, int32_t k, T* __restrict Tr, T* __restrict aR, T* __restrict aG,
+                       T* __restrict aB, T* __restrict dep, int32_t* __restrict last, int& nsat) {
+  int nblend = 0, ndone = 0;
+  const int m = NL ? NL : n;
+// no pragma
+  for (int j = 0; j < m; ++j) {
     const T c = q.nx * dx[j] + q.ny * dy[j] + q.nz * dz[j];
     const bool ok = c > (T)C_MIN;
     const T ic = T(1) / (ok ? c : T(1));
     const T u = (q.a1x * dx[j] + q.a1y * dy[j] + q.a1z * dz[j]) * ic - q.uc;
     const T v = (q.a2x * dx[j] + q.a2y * dy[j] + q.a2z * dz[j]) * ic - q.vc;
     const T p = T(0.5) * (q.q00 * u * u + q.q11 * v * v) + q.q01 * u * v;
-    pw[j] = ok ? p : inf;
-    uu[j] = u;
-    vv[j] = v;
-    icc[j] = ic;
+    const T t = Tr[j];
+    const bool h = ln.has(j) & ok & (p <= q.tau) & (t >= (T)T_MIN);
+    const T e = gexp<T>(h ? -p : T(0));
+    const T alpha = h ? std::min(q.op * e, (T)ALPHA_MAX) : T(0);
+    const T w = alpha * t;
+    aR[j] += w * q.cr;
+    aG[j] += w * q.cg;
+    aB[j] += w * q.cb;
+    dep[j] += w * q.dist;
+    const T tn = t * (T(1) - alpha);
+    Tr[j] = tn;
+    last[j] = h ? k : last[j];
+    nblend += h;
+    ndone += h & (tn < (T)T_MIN);
   }
+  nsat += ndone;
+  return nblend;
 }
-// Bit j set where pixel j passes the cutoff (power <= tau; false for NaN); n <= 32.
+
+// Per-(Gaussian, tile) gradient sums with respect to the packed parameters (PACK order).
 template <typename T>
-inline uint32_t hit_mask(const T* pw, T tau, int n) {
-  uint32_t m = 0;
-  for (int j = 0; j < n; ++j) m |= (uint32_t)(pw[j] <= tau) << j;
-  return m;
+struct PackGrad {
+  T v[PACK - 1] = {};
+};
+
+// One tile row of the backward, vectorised like row_forward: pixels behind the
+// Gaussian's last blend (k > last) or missed by it contribute nothing through selects.
+// Returns the number of pixels that had blended this Gaussian.
+template <typename T, int NL>
+inline int row_backward(const G<T>& q, const T* __restrict dx, const T* __restrict dy, const T* __restrict dz, int n,
+                        Lanes ln, int32_t k, const int32_t* __restrict last, T* __restrict Tr, T* __restrict Sg,
+                        const T* __restrict gCr, const T* __restrict gCg, const T* __restrict gCb,
+                        const T* __restrict gD, const T* __restrict gA, PackGrad<T>& acc) {
+  T ga1x = 0, ga1y = 0, ga1z = 0, ga2x = 0, ga2y = 0, ga2z = 0, gnx = 0, gny = 0, gnz = 0, guc = 0, gvc = 0,
+    gq00 = 0, gq01 = 0, gq11 = 0, gop = 0, gcr = 0, gcg = 0, gcb = 0, gdist = 0;
+  int nact = 0;
+  const int m = NL ? NL : n;
+#pragma omp simd reduction(+ : ga1x, ga1y, ga1z, ga2x, ga2y, ga2z, gnx, gny, gnz, guc, gvc, gq00, gq01, gq11, gop, \
+                               gcr, gcg, gcb, gdist, nact)
+  for (int j = 0; j < m; ++j) {
+    const T c = q.nx * dx[j] + q.ny * dy[j] + q.nz * dz[j];
+    const bool ok = c > (T)C_MIN;
+    const T ic = T(1) / (ok ? c : T(1));
+    const T u = (q.a1x * dx[j] + q.a1y * dy[j] + q.a1z * dz[j]) * ic - q.uc;
+    const T v = (q.a2x * dx[j] + q.a2y * dy[j] + q.a2z * dz[j]) * ic - q.vc;
+    const T p = T(0.5) * (q.q00 * u * u + q.q11 * v * v) + q.q01 * u * v;
+    const bool h = ln.has(j) & ok & (p <= q.tau) & (k <= last[j]);
+    const T Gv = gexp<T>(h ? -p : T(0));
+    const T oG = q.op * Gv;
+    const T alpha = h ? std::min(oG, (T)ALPHA_MAX) : T(0);
+    const T ioma = T(1) / (T(1) - alpha);
+    const T Ti = Tr[j] * ioma;
+    const T w = alpha * Ti;
+    const T xg = q.cr * gCr[j] + q.cg * gCg[j] + q.cb * gCb[j] + q.dist * gD[j] + gA[j];
+    const T dLda = Ti * xg - Sg[j] * ioma;
+    Sg[j] = h ? Sg[j] + w * xg : Sg[j];
+    Tr[j] = h ? Ti : Tr[j];
+    nact += h;
+    gcr += h ? w * gCr[j] : T(0);
+    gcg += h ? w * gCg[j] : T(0);
+    gcb += h ? w * gCb[j] : T(0);
+    gdist += h ? w * gD[j] : T(0);
+    // no gradient through the 0.99 clamp (docs/splatting.md)
+    const bool g = h & (oG < (T)ALPHA_MAX);
+    const T dpow = -oG * dLda;
+    const T du = dpow * (q.q00 * u + q.q01 * v);
+    const T dv = dpow * (q.q01 * u + q.q11 * v);
+    gop += g ? Gv * dLda : T(0);
+    gq00 += g ? T(0.5) * dpow * u * u : T(0);
+    gq01 += g ? dpow * u * v : T(0);
+    gq11 += g ? T(0.5) * dpow * v * v : T(0);
+    guc -= g ? du : T(0);
+    gvc -= g ? dv : T(0);
+    // h0 = (u + uc) c, h1 = (v + vc) c
+    const T dh0 = g ? du * ic : T(0), dh1 = g ? dv * ic : T(0);
+    const T dc = -(dh0 * (u + q.uc) + dh1 * (v + q.vc));
+    ga1x += dh0 * dx[j]; ga1y += dh0 * dy[j]; ga1z += dh0 * dz[j];
+    ga2x += dh1 * dx[j]; ga2y += dh1 * dy[j]; ga2z += dh1 * dz[j];
+    gnx += g ? dc * dx[j] : T(0); gny += g ? dc * dy[j] : T(0); gnz += g ? dc * dz[j] : T(0);
+  }
+  const T sums[PACK - 1] = {ga1x, ga1y, ga1z, ga2x, ga2y, ga2z, gnx, gny, gnz, guc, gvc,
+                            gq00, gq01, gq11, gop, gcr, gcg, gcb, gdist};
+  for (int i = 0; i < PACK - 1; ++i) acc.v[i] += sums[i];
+  return nact;
 }
 
 template <typename T>
@@ -170,7 +281,6 @@ void forward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t*
     const int tw = x1 - x0, npx = tw * (y1 - y0);
     T Tr[MAX_TILE * MAX_TILE], accR[MAX_TILE * MAX_TILE], accG[MAX_TILE * MAX_TILE], accB[MAX_TILE * MAX_TILE],
         dep[MAX_TILE * MAX_TILE];
-    T pw[MAX_TILE], uu[MAX_TILE], vv[MAX_TILE], icc[MAX_TILE];
     int32_t last[MAX_TILE * MAX_TILE];
     for (int i = 0; i < npx; ++i) {
       Tr[i] = 1;
@@ -190,34 +300,24 @@ void forward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t*
       Span s;
       if (!tile_span(bbox + 4 * g, y0, y1, x0, x1, W, s)) continue;
       const G<T> q(P + (int64_t)g * PACK);
+      const Lanes ln{s.a0 - x0, s.a1 - x0, s.b0 - x0, s.b1 - x0};
       int any = 0;
+      const Window wd = lane_window(ln, tw);
       for (int r = s.r0; r <= s.r1; ++r) {
-        for (int iv = 0; iv < 2; ++iv) {
-          const int cs = iv ? s.b0 : s.a0, ce = iv ? s.b1 : s.a1;
-          if (cs >= ce) continue;
-          const int64_t o = (int64_t)r * W + cs;
-          const int n = ce - cs, base = (r - y0) * tw + (cs - x0);
-          row_power<T>(q, dirs + o, dirs + HW + o, dirs + 2 * HW + o, n, pw, uu, vv, icc);
-          // Pass 2: blend the hits (scalar: most of a box is not hit, and exp is costly),
-          // walking a bit mask of the hits (no mispredicted branch per pixel).
-          uint32_t msk = hit_mask<T>(pw, q.tau, n);
-          while (msk) {
-            const int j = __builtin_ctz(msk);
-            msk &= msk - 1;
-            const int i = base + j;
-            if (Tr[i] < (T)T_MIN) continue;
-            any = 1;
-            const T alpha = std::min(q.op * gexp<T>(-pw[j]), (T)ALPHA_MAX);
-            const T w = alpha * Tr[i];
-            accR[i] += w * q.cr;
-            accG[i] += w * q.cg;
-            accB[i] += w * q.cb;
-            dep[i] += w * q.dist;
-            Tr[i] *= (T(1) - alpha);
-            last[i] = (int32_t)k;
-            if (Tr[i] < (T)T_MIN) ++ndone;
-          }
-        }
+        const int64_t o = (int64_t)r * W + x0 + wd.h;
+        const int i = (r - y0) * tw + wd.h;
+        const T *dx = dirs + o, *dy = dirs + HW + o, *dz = dirs + 2 * HW + o;
+        int nb;
+        if (wd.nl == 16)
+          nb = row_forward<T, 16>(q, dx, dy, dz, tw, wd.ln, (int32_t)k, Tr + i, accR + i, accG + i, accB + i, dep + i,
+                                  last + i, ndone);
+        else if (wd.nl == 8)
+          nb = row_forward<T, 8>(q, dx, dy, dz, tw, wd.ln, (int32_t)k, Tr + i, accR + i, accG + i, accB + i,
+                                 dep + i, last + i, ndone);
+        else
+          nb = row_forward<T, 0>(q, dx, dy, dz, tw, wd.ln, (int32_t)k, Tr + i, accR + i, accG + i, accB + i,
+                                 dep + i, last + i, ndone);
+        any |= nb > 0;
       }
       hit[k] = any;  // the backward skips entries that blended nothing in this tile
     }
@@ -251,7 +351,6 @@ void backward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t
       const int tw = x1 - x0;
       T Tr[MAX_TILE * MAX_TILE], Sg[MAX_TILE * MAX_TILE], gCr[MAX_TILE * MAX_TILE], gCg[MAX_TILE * MAX_TILE],
           gCb[MAX_TILE * MAX_TILE], gD[MAX_TILE * MAX_TILE], gA[MAX_TILE * MAX_TILE];
-      T pw[MAX_TILE], uu[MAX_TILE], vv[MAX_TILE], icc[MAX_TILE];
       int32_t last[MAX_TILE * MAX_TILE];
       int64_t kmax = -1;
       for (int r = y0; r < y1; ++r)
@@ -285,76 +384,29 @@ void backward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t
         const G<T> q(P + (int64_t)g * PACK);
         // per-(Gaussian, tile) sums in the working precision (at most ts² terms), then
         // added to the thread's double buffer
-        T ga1x = 0, ga1y = 0, ga1z = 0, ga2x = 0, ga2y = 0, ga2z = 0, gnx = 0, gny = 0, gnz = 0, guc = 0, gvc = 0,
-          gq00 = 0, gq01 = 0, gq11 = 0, gop = 0, gcr = 0, gcg = 0, gcb = 0, gdist = 0;
+        PackGrad<T> acc;
+        const Lanes ln{s.a0 - x0, s.a1 - x0, s.b0 - x0, s.b1 - x0};
         int any = 0;
+        const Window wd = lane_window(ln, tw);
         for (int r = s.r0; r <= s.r1; ++r) {
-          for (int iv = 0; iv < 2; ++iv) {
-            const int cs = iv ? s.b0 : s.a0, ce = iv ? s.b1 : s.a1;
-            if (cs >= ce) continue;
-            const int64_t o = (int64_t)r * W + cs;
-            const int n = ce - cs, base = (r - y0) * tw + (cs - x0);
-            const T* dx = dirs + o;
-            const T* dy = dirs + HW + o;
-            const T* dz = dirs + 2 * HW + o;
-            row_power<T>(q, dx, dy, dz, n, pw, uu, vv, icc);
-            uint32_t msk = hit_mask<T>(pw, q.tau, n);
-            while (msk) {
-              const int j = __builtin_ctz(msk);
-              msk &= msk - 1;
-              const int i = base + j;
-              if (k > (int64_t)last[i]) continue;
-              const T u = uu[j], v = vv[j], ic = icc[j];
-              const T Gv = gexp<T>(-pw[j]);
-              const T oG = q.op * Gv;
-              const T alpha = std::min(oG, (T)ALPHA_MAX);
-              const T ioma = T(1) / (T(1) - alpha);
-              const T Ti = Tr[i] * ioma;
-              const T w = alpha * Ti;
-              const T xg = q.cr * gCr[i] + q.cg * gCg[i] + q.cb * gCb[i] + q.dist * gD[i] + gA[i];
-              const T dLda = Ti * xg - Sg[i] * ioma;
-              Sg[i] += w * xg;
-              Tr[i] = Ti;
-              any = 1;
-              gcr += w * gCr[i];
-              gcg += w * gCg[i];
-              gcb += w * gCb[i];
-              gdist += w * gD[i];
-              if (oG < (T)ALPHA_MAX) {
-                gop += Gv * dLda;
-                const T dpow = -oG * dLda;
-                const T du = dpow * (q.q00 * u + q.q01 * v);
-                const T dv = dpow * (q.q01 * u + q.q11 * v);
-                gq00 += T(0.5) * dpow * u * u;
-                gq01 += dpow * u * v;
-                gq11 += T(0.5) * dpow * v * v;
-                guc -= du;
-                gvc -= dv;
-                // h0 = (u + uc) c, h1 = (v + vc) c
-                const T dh0 = du * ic, dh1 = dv * ic;
-                const T dc = -(dh0 * (u + q.uc) + dh1 * (v + q.vc));
-                ga1x += dh0 * dx[j]; ga1y += dh0 * dy[j]; ga1z += dh0 * dz[j];
-                ga2x += dh1 * dx[j]; ga2y += dh1 * dy[j]; ga2z += dh1 * dz[j];
-                gnx += dc * dx[j]; gny += dc * dy[j]; gnz += dc * dz[j];
-              }
-            }
-          }
+          const int64_t o = (int64_t)r * W + x0 + wd.h;
+          const int i = (r - y0) * tw + wd.h;
+          const T *dx = dirs + o, *dy = dirs + HW + o, *dz = dirs + 2 * HW + o;
+          int na;
+          if (wd.nl == 16)
+            na = row_backward<T, 16>(q, dx, dy, dz, tw, wd.ln, (int32_t)k, last + i, Tr + i, Sg + i, gCr + i,
+                                     gCg + i, gCb + i, gD + i, gA + i, acc);
+          else if (wd.nl == 8)
+            na = row_backward<T, 8>(q, dx, dy, dz, tw, wd.ln, (int32_t)k, last + i, Tr + i, Sg + i, gCr + i,
+                                    gCg + i, gCb + i, gD + i, gA + i, acc);
+          else
+            na = row_backward<T, 0>(q, dx, dy, dz, tw, wd.ln, (int32_t)k, last + i, Tr + i, Sg + i, gCr + i,
+                                    gCg + i, gCb + i, gD + i, gA + i, acc);
+          any |= na > 0;
         }
         if (any) {
           double* gb = mybuf + (int64_t)g * PACK;
-          gb[0] += ga1x; gb[1] += ga1y; gb[2] += ga1z;
-          gb[3] += ga2x; gb[4] += ga2y; gb[5] += ga2z;
-          gb[6] += gnx; gb[7] += gny; gb[8] += gnz;
-          gb[9] += guc;
-          gb[10] += gvc;
-          gb[11] += gq00;
-          gb[12] += gq01;
-          gb[13] += gq11;
-          gb[14] += gop;
-          gb[15] += gcr;
-          gb[16] += gcg;
-          gb[17] += gcb;
-          gb[18] += gdist;
+          for (int i = 0; i < PACK - 1; ++i) gb[i] += acc.v[i];
         }
       }
     }
@@ -456,7 +508,8 @@ void project_all(const proj::Cam& cam, const T* Rv, const T* tv, const T* means,
     p[9] = st.uc; p[10] = st.vc; p[11] = st.Q[0]; p[12] = st.Q[1]; p[13] = st.Q[2]; p[14] = opac[g];
     p[15] = rgb[3 * g]; p[16] = rgb[3 * g + 1]; p[17] = rgb[3 * g + 2]; p[18] = st.dist; p[19] = st.tau;
     bool ok = st.valid;
-    double radius = 0;
+    double radius = 0, phi = 0, theta = 0;
+    bool have_angles = false;  // longitude / latitude of the centre, from equirect_box
     if (ok) {
       const double A = st.A, B = st.B, C = st.C, tau = st.tau;
       const double lmax = 0.5 * (A + C) + std::sqrt(std::max(0.25 * (A - C) * (A - C) + B * B, 0.0));
@@ -474,7 +527,8 @@ void project_all(const proj::Cam& cam, const T* Rv, const T* tv, const T* means,
         const double sss = e1s * e1s * A + 2 * e1s * e2s * B + e2s * e2s * C;
         const double hx = std::sqrt(std::max(2.0 * tau * see, 0.0)) / cam.sx;
         const double hy = std::sqrt(std::max(2.0 * tau * sss, 0.0)) / cam.sy;
-        ok = proj::equirect_box(cam, n, hx, hy, b);
+        ok = proj::equirect_box(cam, n, hx, hy, b, phi, theta);
+        have_angles = true;
       } else if (ok) {
         const double hx = std::sqrt(std::max(2.0 * tau * A, 0.0)), hy = std::sqrt(std::max(2.0 * tau * C, 0.0));
         ok = proj::pinhole_box(cam, st.uc + cam.cx, st.vc + cam.cy, hx, hy, b);
@@ -484,8 +538,11 @@ void project_all(const proj::Cam& cam, const T* Rv, const T* tv, const T* means,
     valid[g] = ok;
     radii[g] = ok ? (int32_t)std::ceil(radius) : 0;
     if (cam.kind == 0) {
-      const double x = st.n[0], y = st.n[1], z = st.n[2];
-      const double phi = std::atan2(x, z), theta = std::atan2(-y, std::sqrt(x * x + z * z));
+      if (!have_angles) {
+        const double x = st.n[0], y = st.n[1], z = st.n[2];
+        phi = std::atan2(x, z);
+        theta = std::atan2(-y, std::sqrt(x * x + z * z));
+      }
       m2d[2 * g] = (T)((phi / (2 * proj::PI) + 0.5) * cam.W - 0.5);
       m2d[2 * g + 1] = (T)((0.5 - theta / proj::PI) * cam.H - 0.5);
     } else {
@@ -493,6 +550,53 @@ void project_all(const proj::Cam& cam, const T* Rv, const T* tv, const T* means,
       m2d[2 * g + 1] = st.vc + (T)cam.cy;
     }
   }
+}
+
+// Front-to-back order of the visible Gaussians (distance, column 18 of P): a stable LSD
+// radix sort of the distances' bit patterns (positive floats order like their bits), one
+// byte per pass, skipping bytes all keys share. Ties keep index order, as a sort of
+// (distance, index) pairs would; several times faster than std::sort on 100k keys.
+template <typename T>
+torch::Tensor depth_order_impl(const T* P, const bool* valid, int64_t N) {
+  using K = typename std::conditional<sizeof(T) == 4, uint32_t, uint64_t>::type;
+  std::vector<K> key, key2;
+  std::vector<int64_t> idx, idx2;
+  key.reserve(N);
+  idx.reserve(N);
+  for (int64_t g = 0; g < N; ++g)
+    if (valid[g]) {
+      K k;
+      std::memcpy(&k, P + g * PACK + 18, sizeof(K));
+      key.push_back(k);
+      idx.push_back(g);
+    }
+  const int64_t n = (int64_t)key.size();
+  key2.resize(n);
+  idx2.resize(n);
+  for (unsigned shift = 0; shift < 8 * sizeof(K); shift += 8) {
+    int64_t hist[257] = {0};
+    for (int64_t i = 0; i < n; ++i) hist[((key[i] >> shift) & 255) + 1]++;
+    if (n == 0 || hist[((key[0] >> shift) & 255) + 1] == n) continue;  // one digit: nothing to do
+    for (int b = 0; b < 256; ++b) hist[b + 1] += hist[b];
+    for (int64_t i = 0; i < n; ++i) {
+      const int64_t d = hist[(key[i] >> shift) & 255]++;
+      key2[d] = key[i];
+      idx2[d] = idx[i];
+    }
+    key.swap(key2);
+    idx.swap(idx2);
+  }
+  auto order = torch::empty({n}, torch::kInt64);
+  std::memcpy(order.data_ptr<int64_t>(), idx.data(), n * sizeof(int64_t));
+  return order;
+}
+
+torch::Tensor depth_order(const torch::Tensor& P, const torch::Tensor& valid) {
+  torch::Tensor order;
+  AT_DISPATCH_FLOATING_TYPES(P.scalar_type(), "depth_order", [&] {
+    order = depth_order_impl<scalar_t>(P.data_ptr<scalar_t>(), valid.data_ptr<bool>(), P.size(0));
+  });
+  return order;
 }
 
 std::vector<torch::Tensor> render_forward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
@@ -517,21 +621,7 @@ std::vector<torch::Tensor> render_forward(torch::Tensor means, torch::Tensor qua
                           P.data_ptr<scalar_t>(), bbox.data_ptr<int32_t>(), valid.data_ptr<bool>(),
                           radii.data_ptr<int32_t>(), m2d.data_ptr<scalar_t>(), rot.data_ptr<scalar_t>());
   });
-  // front-to-back order of the visible Gaussians
-  std::vector<std::pair<double, int64_t>> keys;
-  keys.reserve(N);
-  {
-    const bool* v = valid.data_ptr<bool>();
-    AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "keys", [&] {
-      const scalar_t* p = P.data_ptr<scalar_t>();
-      for (int64_t g = 0; g < N; ++g)
-        if (v[g]) keys.emplace_back((double)p[g * PACK + 18], g);
-    });
-  }
-  std::sort(keys.begin(), keys.end());
-  auto order = torch::empty({(int64_t)keys.size()}, torch::kInt64);
-  int64_t* o = order.data_ptr<int64_t>();
-  for (size_t i = 0; i < keys.size(); ++i) o[i] = keys[i].second;
+  auto order = depth_order(P, valid);
   auto bins = bin_gaussians(bbox, order, H, W, ts);
   auto out = forward(P, dirs, bbox, bins[0], bins[1], H, W, ts);
   // color, depth, Tfinal, last, P, bbox, toff, tlist, valid, radii, m2d, rot, hit
