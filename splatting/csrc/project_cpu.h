@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <limits>
 
 namespace proj {
 
@@ -120,14 +121,14 @@ inline void east_south(const T n[3], T e[3], T s[3]) {
 }
 
 // Pixel box (see _equirect_bbox in project.py) ; returns false if empty. Also returns the
-// centre's longitude and latitude (for means2d). Transcendentals are the hot spot of the
+// centre's longitude (and its latitude where it needed it, else NaN; for means2d). Transcendentals are the hot spot of the
 // projection, so the bounds use the fewest: cos of a latitude bound is taken from its sine,
 // and the angular radius atan(r) is bounded by r where only a margin needs it.
 inline bool equirect_box(const Cam& cam, const double n[3], double hx, double hy, int32_t out[4], double& phi0,
                          double& theta0) {
   const int H = cam.H, W = cam.W;
+  theta0 = std::numeric_limits<double>::quiet_NaN();
   const double hr = std::sqrt(n[0] * n[0] + n[2] * n[2]);
-  theta0 = std::atan2(-n[1], hr);
   phi0 = std::atan2(n[0], n[2]);
   const double st = -n[1], ct = hr;  // sin and cos of theta0 (n is a unit vector)
   const double pix = 2 * PI / W;
@@ -141,6 +142,7 @@ inline bool equirect_box(const Cam& cam, const double n[3], double hx, double hy
   const double margin = 1e-3 * pix + 1e-4 * r;  // atan(r) <= r
   double tmax, tmin;
   if (pole) {
+    theta0 = std::atan2(-n[1], hr);
     const double beta = std::atan(r);
     tmax = theta0 + beta + margin;
     tmin = theta0 - beta - margin;
@@ -152,7 +154,10 @@ inline bool equirect_box(const Cam& cam, const double n[3], double hx, double hy
   r0 = std::min(std::max(r0, 0.0), (double)(H - 1));
   r1 = std::min(std::max(r1, -1.0), (double)(H - 1));
   const double den = std::max(ct - hy * std::fabs(st), 1e-300);
-  const double dphi0 = std::atan2(hx, den);
+  // longitude half-width atan(hx / den); for small splats hx / den itself, an upper bound
+  // that is larger by under (hx/den)³/3 <= 3.4e-4 rad
+  const double xr = hx / den;
+  const double dphi0 = xr < 0.1 ? xr : std::atan2(hx, den);
   // cos of the latitude bound farthest from the equator (before the margin, which the
   // 1e-12 floor and the pixel-sized slack below cover)
   const double smax = std::max(std::fabs(s_hi), std::fabs(s_lo));

@@ -33,52 +33,60 @@ inline int threads_for(int64_t npairs, int ts) {
   return (npairs * ts * ts < 262144) ? 1 : nthreads();
 }
 
-// Tile lists: every Gaussian listed in `order` (front to back) is appended
-// to each tile its pixel box touches. bbox rows: r0, r1 (inclusive), c0, ncols
-// (columns wrap modulo W).
-// Number of tile columns, as one circular run from tile c0/ts: columns [c0, c0+n) wrap
-// modulo W, and W need not be a multiple of ts, so the wrapped part restarts at tile 0.
-inline int64_t tile_cols(const int32_t* b, int64_t W, int64_t ts, int64_t ntx) {
-  const int64_t c0 = b[2], end = (int64_t)b[2] + b[3], tc0 = c0 / ts;
-  const int64_t n = end > W ? ntx - tc0 + (end - W - 1) / ts + 1 : (end - 1) / ts - tc0 + 1;
-  return std::min(n, ntx);
+// Tile lists: every Gaussian listed in `order` (front to back) is appended to each tile
+// its pixel box touches. bbox rows: r0, r1 (inclusive), c0, ncols (columns wrap modulo W).
+
+// x / ts for x >= 0, as a shift when ts is a power of two (the default tile sizes): a
+// 64-bit division per box edge was most of the binning time.
+struct TileDiv {
+  int ts, shift;
+  explicit TileDiv(int t) : ts(t), shift((t & (t - 1)) == 0 ? __builtin_ctz(t) : -1) {}
+  int operator()(int x) const { return shift >= 0 ? x >> shift : x / ts; }
+};
+
+// Tiles of a pixel box: rows [tr0, tr1], and ntc tile columns from tc0 as one circular
+// run (columns [c0, c0+n) wrap modulo W, and W need not be a multiple of ts, so the
+// wrapped part restarts at tile 0).
+struct TileBox {
+  int tr0, tr1, tc0, ntc;
+};
+inline TileBox tile_box(const int32_t* b, int W, int ntx, const TileDiv& div) {
+  const int c0 = b[2], end = b[2] + b[3], tc0 = div(c0);
+  const int n = end > W ? ntx - tc0 + div(end - W - 1) + 1 : div(end - 1) - tc0 + 1;
+  return {div(b[0]), div(b[1]), tc0, std::min(n, ntx)};
 }
 
 std::vector<torch::Tensor> bin_gaussians(torch::Tensor bbox, torch::Tensor order, int64_t H, int64_t W, int64_t ts) {
   TORCH_CHECK(bbox.dtype() == torch::kInt32 && bbox.is_contiguous(), "bbox must be contiguous int32");
   TORCH_CHECK(order.dtype() == torch::kInt64 && order.is_contiguous(), "order must be contiguous int64");
-  const int64_t ntx = (W + ts - 1) / ts, nty = (H + ts - 1) / ts, ntiles = ntx * nty;
-  const int64_t nv = order.size(0);
+  const int ntx = (int)((W + ts - 1) / ts), nty = (int)((H + ts - 1) / ts);
+  const int64_t ntiles = (int64_t)ntx * nty, nv = order.size(0), N = bbox.size(0);
   const int32_t* bb = bbox.data_ptr<int32_t>();
   const int64_t* ord = order.data_ptr<int64_t>();
-  auto toff = torch::zeros({ntiles + 1}, torch::kInt64);
-  int64_t* off = toff.data_ptr<int64_t>();
-  // Calls f(tile) for every tile the pixel box b touches (columns wrap).
-  auto for_tiles = [&](const int32_t* b, auto&& f) {
-    const int64_t tr0 = b[0] / ts, tr1 = b[1] / ts, tc0 = b[2] / ts, ntc = tile_cols(b, W, ts, ntx);
-    for (int64_t tr = tr0; tr <= tr1; ++tr) {
+  const TileDiv div((int)ts);
+  // tile boxes of the listed Gaussians, in memory order (nv = 0 rows for the others)
+  std::vector<TileBox> tb(N, TileBox{0, -1, 0, 0});
+  for (int64_t k = 0; k < nv; ++k) tb[ord[k]].tr0 = 1;
+  for (int64_t g = 0; g < N; ++g) tb[g] = tb[g].tr0 ? tile_box(bb + 4 * g, (int)W, ntx, div) : TileBox{0, -1, 0, 0};
+  auto for_tiles = [&](const TileBox& t, auto&& f) {
+    for (int64_t tr = t.tr0; tr <= t.tr1; ++tr) {
       const int64_t row = tr * ntx;
-      for (int64_t j = 0, c = tc0; j < ntc; ++j, c = (c + 1 == ntx ? 0 : c + 1)) f(row + c);
+      for (int j = 0, c = t.tc0; j < t.ntc; ++j, c = (c + 1 == ntx ? 0 : c + 1)) f(row + c);
     }
   };
-  // Counting needs no order: walk the boxes in memory order (the sorted order is a
-  // random walk through them, paid once below).
+  auto toff = torch::zeros({ntiles + 1}, torch::kInt64);
+  int64_t* off = toff.data_ptr<int64_t>();
   std::vector<int64_t> cnt(ntiles, 0);
-  {
-    std::vector<uint8_t> listed(bbox.size(0), 0);
-    for (int64_t k = 0; k < nv; ++k) listed[ord[k]] = 1;
-    for (int64_t g = 0; g < bbox.size(0); ++g)
-      if (listed[g]) for_tiles(bb + 4 * g, [&](int64_t t) { cnt[t]++; });
-  }
+  for (int64_t g = 0; g < N; ++g) for_tiles(tb[g], [&](int64_t t) { cnt[t]++; });  // counts need no order
   off[0] = 0;
   for (int64_t t = 0; t < ntiles; ++t) off[t + 1] = off[t] + cnt[t];
   auto tlist = torch::empty({off[ntiles]}, torch::kInt32);
   int32_t* tl = tlist.data_ptr<int32_t>();
   std::vector<int64_t> pos(off, off + ntiles);
   for (int64_t k = 0; k < nv; ++k) {
+    if (k + 8 < nv) __builtin_prefetch(&tb[ord[k + 8]]);
     const int64_t g = ord[k];
-    if (k + 8 < nv) __builtin_prefetch(bb + 4 * ord[k + 8]);
-    for_tiles(bb + 4 * g, [&](int64_t t) { tl[pos[t]++] = (int32_t)g; });
+    for_tiles(tb[g], [&](int64_t t) { tl[pos[t]++] = (int32_t)g; });
   }
   return {toff, tlist};
 }
@@ -508,7 +516,7 @@ void project_all(const proj::Cam& cam, const T* Rv, const T* tv, const T* means,
     p[9] = st.uc; p[10] = st.vc; p[11] = st.Q[0]; p[12] = st.Q[1]; p[13] = st.Q[2]; p[14] = opac[g];
     p[15] = rgb[3 * g]; p[16] = rgb[3 * g + 1]; p[17] = rgb[3 * g + 2]; p[18] = st.dist; p[19] = st.tau;
     bool ok = st.valid;
-    double radius = 0, phi = 0, theta = 0;
+    double radius = 0, phi = 0, theta = std::numeric_limits<double>::quiet_NaN();
     bool have_angles = false;  // longitude / latitude of the centre, from equirect_box
     if (ok) {
       const double A = st.A, B = st.B, C = st.C, tau = st.tau;
@@ -538,9 +546,9 @@ void project_all(const proj::Cam& cam, const T* Rv, const T* tv, const T* means,
     valid[g] = ok;
     radii[g] = ok ? (int32_t)std::ceil(radius) : 0;
     if (cam.kind == 0) {
-      if (!have_angles) {
-        const double x = st.n[0], y = st.n[1], z = st.n[2];
-        phi = std::atan2(x, z);
+      if (!have_angles) phi = std::atan2((double)st.n[0], (double)st.n[2]);
+      if (!(theta == theta)) {  // NaN: not needed by the box; means2d needs only precision T
+        const T x = st.n[0], y = st.n[1], z = st.n[2];
         theta = std::atan2(-y, std::sqrt(x * x + z * z));
       }
       m2d[2 * g] = (T)((phi / (2 * proj::PI) + 0.5) * cam.W - 0.5);
@@ -559,29 +567,35 @@ void project_all(const proj::Cam& cam, const T* Rv, const T* tv, const T* means,
 template <typename T>
 torch::Tensor depth_order_impl(const T* P, const bool* valid, int64_t N) {
   using K = typename std::conditional<sizeof(T) == 4, uint32_t, uint64_t>::type;
-  std::vector<K> key, key2;
-  std::vector<int64_t> idx, idx2;
-  key.reserve(N);
-  idx.reserve(N);
-  for (int64_t g = 0; g < N; ++g)
-    if (valid[g]) {
-      K k;
-      std::memcpy(&k, P + g * PACK + 18, sizeof(K));
-      key.push_back(k);
-      idx.push_back(g);
-    }
-  const int64_t n = (int64_t)key.size();
+  constexpr int NB = sizeof(K);  // byte digits
+  std::vector<K> key(N), key2;
+  std::vector<int64_t> idx(N), idx2;
+  int64_t n = 0;
+  for (int64_t g = 0; g < N; ++g) {  // branch-free compaction of the visible ones
+    std::memcpy(&key[n], P + g * PACK + 18, sizeof(K));
+    idx[n] = g;
+    n += valid[g];
+  }
+  key.resize(n);
+  idx.resize(n);
   key2.resize(n);
   idx2.resize(n);
-  for (unsigned shift = 0; shift < 8 * sizeof(K); shift += 8) {
-    int64_t hist[257] = {0};
-    for (int64_t i = 0; i < n; ++i) hist[((key[i] >> shift) & 255) + 1]++;
-    if (n == 0 || hist[((key[0] >> shift) & 255) + 1] == n) continue;  // one digit: nothing to do
-    for (int b = 0; b < 256; ++b) hist[b + 1] += hist[b];
+  std::vector<int64_t> hist(NB * 256, 0);  // all digits' histograms in one pass
+  for (int64_t i = 0; i < n; ++i)
+    for (int d = 0; d < NB; ++d) hist[d * 256 + ((key[i] >> (8 * d)) & 255)]++;
+  for (int d = 0; d < NB; ++d) {
+    int64_t* h = hist.data() + d * 256;
+    if (n == 0 || h[(key[0] >> (8 * d)) & 255] == n) continue;  // one digit value: nothing to do
+    int64_t sum = 0;
+    for (int b = 0; b < 256; ++b) {
+      const int64_t c = h[b];
+      h[b] = sum;
+      sum += c;
+    }
     for (int64_t i = 0; i < n; ++i) {
-      const int64_t d = hist[(key[i] >> shift) & 255]++;
-      key2[d] = key[i];
-      idx2[d] = idx[i];
+      const int64_t at = h[(key[i] >> (8 * d)) & 255]++;
+      key2[at] = key[i];
+      idx2[at] = idx[i];
     }
     key.swap(key2);
     idx.swap(idx2);

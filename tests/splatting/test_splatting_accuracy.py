@@ -76,13 +76,28 @@ def test_pinhole_matches_dense_reference(backend):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_image_independent_of_tile_size(backend):
-    scene = random_scene(30, seed=4, scale=(0.02, 0.4))
-    cam = splatting.EquirectCamera(24, 48)
-    ref = splatting.render(*scene, eye(), cam, backend=backend, tile_size=16)
-    for ts in (4, 8, 32):
-        out = splatting.render(*scene, eye(), cam, backend=backend, tile_size=ts)
-        torch.testing.assert_close(out.image, ref.image, atol=1e-12, rtol=0)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("width", [48, 40])  # 40: a narrow last tile column
+def test_image_independent_of_tile_size(backend, dtype, width):
+    """Tile size, and the lane windows the CPU kernel picks per tile row (8 or 16 lanes,
+    or any width), change the work, not the image; nor do the gradients change."""
+    scene = random_scene(60, seed=4, scale=(0.005, 0.4), dtype=dtype)
+    for x in scene:
+        x.requires_grad_(True)
+    cam = splatting.EquirectCamera(width // 2, width)
+    tol = 1e-12 if dtype == torch.float64 else 2e-6
+
+    def run(ts):
+        out = splatting.render(*scene, eye(dtype), cam, backend=backend, tile_size=ts)
+        grads = torch.autograd.grad((out.image * out.image.detach()).sum() + out.depth.sum(), scene)
+        return out.image.detach(), grads
+
+    ref, ref_grads = run(16)
+    for ts in (4, 8, 12, 32):
+        img, grads = run(ts)
+        torch.testing.assert_close(img, ref, atol=tol, rtol=0)
+        for g, rg in zip(grads, ref_grads):
+            torch.testing.assert_close(g, rg, atol=tol * 100, rtol=1e-4 if dtype == torch.float32 else 1e-9)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
