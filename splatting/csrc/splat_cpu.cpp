@@ -64,10 +64,11 @@ std::vector<torch::Tensor> bin_gaussians(torch::Tensor bbox, torch::Tensor order
   const int32_t* bb = bbox.data_ptr<int32_t>();
   const int64_t* ord = order.data_ptr<int64_t>();
   const TileDiv div((int)ts);
-  // tile boxes of the listed Gaussians, in memory order (nv = 0 rows for the others)
-  std::vector<TileBox> tb(N, TileBox{0, -1, 0, 0});
-  for (int64_t k = 0; k < nv; ++k) tb[ord[k]].tr0 = 1;
-  for (int64_t g = 0; g < N; ++g) tb[g] = tb[g].tr0 ? tile_box(bb + 4 * g, (int)W, ntx, div) : TileBox{0, -1, 0, 0};
+  // tile boxes of the listed Gaussians, in memory order (no rows for the others)
+  std::vector<uint8_t> listed(N, 0);
+  for (int64_t k = 0; k < nv; ++k) listed[ord[k]] = 1;
+  std::vector<TileBox> tb(N);
+  for (int64_t g = 0; g < N; ++g) tb[g] = listed[g] ? tile_box(bb + 4 * g, (int)W, ntx, div) : TileBox{0, -1, 0, 0};
   auto for_tiles = [&](const TileBox& t, auto&& f) {
     for (int64_t tr = t.tr0; tr <= t.tr1; ++tr) {
       const int64_t row = tr * ntx;
@@ -145,6 +146,24 @@ inline T gexp(T x) {
   else return std::exp(x);
 }
 
+// The Gaussian at a pixel with ray direction d: c = n·d (ok: c > C_MIN; other pixels are
+// not evaluated and get a finite dummy), (u, v) on the tangent plane, the power
+// ½ (Q00 u² + Q11 v²) + Q01 u v, and ic = 1/c for the backward.
+template <typename T>
+struct Eval {
+  T u, v, p, ic;
+  bool ok;
+};
+template <typename T>
+inline Eval<T> evaluate(const G<T>& q, T dx, T dy, T dz) {
+  const T c = q.nx * dx + q.ny * dy + q.nz * dz;
+  const bool ok = c > (T)C_MIN;
+  const T ic = T(1) / (ok ? c : T(1));
+  const T u = (q.a1x * dx + q.a1y * dy + q.a1z * dz) * ic - q.uc;
+  const T v = (q.a2x * dx + q.a2y * dy + q.a2z * dz) * ic - q.vc;
+  return {u, v, T(0.5) * (q.q00 * u * u + q.q11 * v * v) + q.q01 * u * v, ic, ok};
+}
+
 // Columns of a tile row that a Gaussian's pixel box covers: lanes [a0, a1) and the
 // wrapped part [b0, b1), relative to the tile's first column.
 struct Lanes {
@@ -182,16 +201,12 @@ inline int row_forward(const G<T>& q, const T* __restrict dx, const T* __restric
                        T* __restrict aB, T* __restrict dep, int32_t* __restrict last, int& nsat) {
   int nblend = 0, ndone = 0;
   const int m = NL ? NL : n;
-// no pragma
+#pragma omp simd reduction(+ : nblend, ndone)
   for (int j = 0; j < m; ++j) {
-    const T c = q.nx * dx[j] + q.ny * dy[j] + q.nz * dz[j];
-    const bool ok = c > (T)C_MIN;
-    const T ic = T(1) / (ok ? c : T(1));
-    const T u = (q.a1x * dx[j] + q.a1y * dy[j] + q.a1z * dz[j]) * ic - q.uc;
-    const T v = (q.a2x * dx[j] + q.a2y * dy[j] + q.a2z * dz[j]) * ic - q.vc;
-    const T p = T(0.5) * (q.q00 * u * u + q.q11 * v * v) + q.q01 * u * v;
+    const Eval<T> ev = evaluate(q, dx[j], dy[j], dz[j]);
+    const T p = ev.p;
     const T t = Tr[j];
-    const bool h = ln.has(j) & ok & (p <= q.tau) & (t >= (T)T_MIN);
+    const bool h = ln.has(j) & ev.ok & (p <= q.tau) & (t >= (T)T_MIN);
     const T e = gexp<T>(h ? -p : T(0));
     const T alpha = h ? std::min(q.op * e, (T)ALPHA_MAX) : T(0);
     const T w = alpha * t;
@@ -230,13 +245,9 @@ inline int row_backward(const G<T>& q, const T* __restrict dx, const T* __restri
 #pragma omp simd reduction(+ : ga1x, ga1y, ga1z, ga2x, ga2y, ga2z, gnx, gny, gnz, guc, gvc, gq00, gq01, gq11, gop, \
                                gcr, gcg, gcb, gdist, nact)
   for (int j = 0; j < m; ++j) {
-    const T c = q.nx * dx[j] + q.ny * dy[j] + q.nz * dz[j];
-    const bool ok = c > (T)C_MIN;
-    const T ic = T(1) / (ok ? c : T(1));
-    const T u = (q.a1x * dx[j] + q.a1y * dy[j] + q.a1z * dz[j]) * ic - q.uc;
-    const T v = (q.a2x * dx[j] + q.a2y * dy[j] + q.a2z * dz[j]) * ic - q.vc;
-    const T p = T(0.5) * (q.q00 * u * u + q.q11 * v * v) + q.q01 * u * v;
-    const bool h = ln.has(j) & ok & (p <= q.tau) & (k <= last[j]);
+    const Eval<T> ev = evaluate(q, dx[j], dy[j], dz[j]);
+    const T u = ev.u, v = ev.v, p = ev.p, ic = ev.ic;
+    const bool h = ln.has(j) & ev.ok & (p <= q.tau) & (k <= last[j]);
     const T Gv = gexp<T>(h ? -p : T(0));
     const T oG = q.op * Gv;
     const T alpha = h ? std::min(oG, (T)ALPHA_MAX) : T(0);
