@@ -189,6 +189,22 @@ inline Window lane_window(const Lanes& ln, int tw) {
   return {0, (tw == 16 || tw == 8) ? tw : 0, ln};
 }
 
+// Calls row(width, dx, dy, dz, i, lanes) for each row of a span inside its tile: width is
+// the lane window's compile-time width (std::integral_constant 16, 8, or 0 = generic),
+// dx/dy/dz the window's ray directions and i its first pixel in the tile buffers.
+template <typename T, typename F>
+inline void for_span_rows(const Span& s, const T* dirs, int64_t HW, int W, int x0, int y0, int tw, F&& row) {
+  const Window wd = lane_window({s.a0 - x0, s.a1 - x0, s.b0 - x0, s.b1 - x0}, tw);
+  for (int r = s.r0; r <= s.r1; ++r) {
+    const int64_t o = (int64_t)r * W + x0 + wd.h;
+    const int i = (r - y0) * tw + wd.h;
+    const T *dx = dirs + o, *dy = dirs + HW + o, *dz = dirs + 2 * HW + o;
+    if (wd.nl == 16) row(std::integral_constant<int, 16>(), dx, dy, dz, i, wd.ln);
+    else if (wd.nl == 8) row(std::integral_constant<int, 8>(), dx, dy, dz, i, wd.ln);
+    else row(std::integral_constant<int, 0>(), dx, dy, dz, i, wd.ln);
+  }
+}
+
 // One tile row of the forward, all lanes at once so that the compiler vectorises it:
 // NL lanes (a compile-time tile width, one or two vector registers, no scalar
 // remainder), or n lanes if NL == 0. A lane outside the box, missed by the Gaussian
@@ -319,25 +335,11 @@ void forward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t*
       Span s;
       if (!tile_span(bbox + 4 * g, y0, y1, x0, x1, W, s)) continue;
       const G<T> q(P + (int64_t)g * PACK);
-      const Lanes ln{s.a0 - x0, s.a1 - x0, s.b0 - x0, s.b1 - x0};
       int any = 0;
-      const Window wd = lane_window(ln, tw);
-      for (int r = s.r0; r <= s.r1; ++r) {
-        const int64_t o = (int64_t)r * W + x0 + wd.h;
-        const int i = (r - y0) * tw + wd.h;
-        const T *dx = dirs + o, *dy = dirs + HW + o, *dz = dirs + 2 * HW + o;
-        int nb;
-        if (wd.nl == 16)
-          nb = row_forward<T, 16>(q, dx, dy, dz, tw, wd.ln, (int32_t)k, Tr + i, accR + i, accG + i, accB + i, dep + i,
-                                  last + i, ndone);
-        else if (wd.nl == 8)
-          nb = row_forward<T, 8>(q, dx, dy, dz, tw, wd.ln, (int32_t)k, Tr + i, accR + i, accG + i, accB + i,
-                                 dep + i, last + i, ndone);
-        else
-          nb = row_forward<T, 0>(q, dx, dy, dz, tw, wd.ln, (int32_t)k, Tr + i, accR + i, accG + i, accB + i,
-                                 dep + i, last + i, ndone);
-        any |= nb > 0;
-      }
+      for_span_rows<T>(s, dirs, HW, W, x0, y0, tw, [&](auto nl, const T* dx, const T* dy, const T* dz, int i, Lanes ln) {
+        any |= row_forward<T, decltype(nl)::value>(q, dx, dy, dz, tw, ln, (int32_t)k, Tr + i, accR + i, accG + i,
+                                                   accB + i, dep + i, last + i, ndone) > 0;
+      });
       hit[k] = any;  // the backward skips entries that blended nothing in this tile
     }
     for (int r = y0; r < y1; ++r)
@@ -404,25 +406,11 @@ void backward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t
         // per-(Gaussian, tile) sums in the working precision (at most ts² terms), then
         // added to the thread's double buffer
         PackGrad<T> acc;
-        const Lanes ln{s.a0 - x0, s.a1 - x0, s.b0 - x0, s.b1 - x0};
         int any = 0;
-        const Window wd = lane_window(ln, tw);
-        for (int r = s.r0; r <= s.r1; ++r) {
-          const int64_t o = (int64_t)r * W + x0 + wd.h;
-          const int i = (r - y0) * tw + wd.h;
-          const T *dx = dirs + o, *dy = dirs + HW + o, *dz = dirs + 2 * HW + o;
-          int na;
-          if (wd.nl == 16)
-            na = row_backward<T, 16>(q, dx, dy, dz, tw, wd.ln, (int32_t)k, last + i, Tr + i, Sg + i, gCr + i,
-                                     gCg + i, gCb + i, gD + i, gA + i, acc);
-          else if (wd.nl == 8)
-            na = row_backward<T, 8>(q, dx, dy, dz, tw, wd.ln, (int32_t)k, last + i, Tr + i, Sg + i, gCr + i,
-                                    gCg + i, gCb + i, gD + i, gA + i, acc);
-          else
-            na = row_backward<T, 0>(q, dx, dy, dz, tw, wd.ln, (int32_t)k, last + i, Tr + i, Sg + i, gCr + i,
-                                    gCg + i, gCb + i, gD + i, gA + i, acc);
-          any |= na > 0;
-        }
+        for_span_rows<T>(s, dirs, HW, W, x0, y0, tw, [&](auto nl, const T* dx, const T* dy, const T* dz, int i, Lanes ln) {
+          any |= row_backward<T, decltype(nl)::value>(q, dx, dy, dz, tw, ln, (int32_t)k, last + i, Tr + i, Sg + i,
+                                                      gCr + i, gCg + i, gCb + i, gD + i, gA + i, acc) > 0;
+        });
         if (any) {
           double* gb = mybuf + (int64_t)g * PACK;
           for (int i = 0; i < PACK - 1; ++i) gb[i] += acc.v[i];
