@@ -29,6 +29,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from panogeom.equirect import angles_to_dirs, column_longitudes, row_latitudes
+from panogeom.surfaces import CEILING, FLOOR, NONE, SURFACE_NAMES, WALL
 from pipeline.errors import PanoError
 from pipeline.stage import StageContext
 from schemas.align import AlignOutput, KindFit
@@ -37,8 +38,7 @@ from schemas.scene import Scene
 Output = AlignOutput
 
 Kind = Literal["metric", "relative", "disparity"]
-NONE, WALL, FLOOR, CEILING = -1, 0, 1, 2
-LABELS = {"wall": WALL, "floor": FLOOR, "ceiling": CEILING}
+LABELS = {name: k for k, name in enumerate(SURFACE_NAMES)}
 
 
 class Params(BaseModel):

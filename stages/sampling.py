@@ -22,6 +22,7 @@ from shapely.geometry.polygon import orient
 
 from panogeom.equirect import angles_to_pixel, dirs_to_angles
 from panogeom.images import read_rgb
+from panogeom.surfaces import CEILING, FLOOR, SURFACE_NAMES, WALL
 from pipeline.errors import PanoError
 from pipeline.stage import StageContext
 from schemas.sampling import SamplingOutput
@@ -31,8 +32,6 @@ from stages.cloud_io import write_cloud
 
 Output = SamplingOutput
 
-WALL, FLOOR, CEILING = 0, 1, 2
-SURFACE_NAMES = ("wall", "floor", "ceiling")
 
 
 class Params(BaseModel):
