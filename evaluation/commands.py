@@ -10,6 +10,8 @@ from typing import Annotated, Optional
 
 import typer
 
+from rich.markup import escape
+
 from pipeline.console import console
 from pipeline.errors import PanoError
 
@@ -54,8 +56,8 @@ def report_command(scene: SceneArg, out: OutOpt = None, config: ConfigOpt = None
     ev = read_artifact(run_dir, "evaluate")
     if ev is not None:
         _print_mean(ev["data"].get("mean", {}))
-    console.print(f"[bold]report:[/] {paths.html}")
-    console.print(f"[bold]markdown:[/] {paths.markdown}")
+    console.print(f"[bold]report:[/] {escape(str(paths.html))}")
+    console.print(f"[bold]markdown:[/] {escape(str(paths.markdown))}")
 
 
 def ablate_command(
@@ -77,7 +79,7 @@ def ablate_command(
     console.print(res["table"])
     for n in res["notes"]:
         console.print(n)
-    console.print(f"[bold]ablation:[/] {res['markdown']} · {res['json']} · {res['chart']}")
+    console.print("[bold]ablation:[/] " + escape(f"{res['markdown']} · {res['json']} · {res['chart']}"))
 
 
 def sweep_command(
@@ -99,7 +101,7 @@ def sweep_command(
     res = run_sweep(engine.scene, engine.out_dir, engine.config, parse_grid(iterations), parse_grid(heights),
                     parse_grid(caps, allow_none=True), eval_height=eval_height, log=console.print)
     console.print(res["table"])
-    console.print(f"[bold]sweep:[/] {res['markdown']} · {res['json']} · {res['chart']}")
+    console.print("[bold]sweep:[/] " + escape(f"{res['markdown']} · {res['json']} · {res['chart']}"))
 
 
 def render_command(
@@ -138,5 +140,5 @@ def render_command(
     slug = re.sub(r"[^A-Za-z0-9_.-]+", "_", path)[:60]
     target = engine.out_dir / "render" / f"flythrough-{slug}-{'persp' if perspective else 'pano'}.mp4"
     res = render_flythrough(g, poses, camera, target, fps=fps, backend=backend, track=track)
-    console.print(f"[bold]video:[/] {res.path} ({res.frames} frames, {res.size[1]}×{res.size[0]}, "
+    console.print(f"[bold]video:[/] {escape(str(res.path))} ({res.frames} frames, {res.size[1]}×{res.size[0]}, "
                   f"{res.frames / max(res.seconds, 1e-9):.1f} frames/s rendered)")

@@ -99,9 +99,37 @@ class Adam:
         }
 
     def load_state_dict(self, state: dict) -> None:
-        self.lrs = dict(state["lrs"])
-        self.betas = tuple(state["betas"])
-        self.eps = float(state["eps"])
-        self.step_count = int(state["step_count"])
-        self.exp_avg = {k: v.clone() for k, v in state["exp_avg"].items()}
-        self.exp_avg_sq = {k: v.clone() for k, v in state["exp_avg_sq"].items()}
+        """Restore state_dict()'s output. Raises ValueError, leaving the optimiser unchanged,
+        when `state` is not one (a checkpoint file is untrusted input)."""
+        keys = ("lrs", "betas", "eps", "step_count", "exp_avg", "exp_avg_sq")
+        if not isinstance(state, dict) or not set(keys) <= set(state):
+            raise ValueError(f"optimiser state must hold {', '.join(keys)}")
+        lrs, betas, eps, steps = state["lrs"], state["betas"], state["eps"], state["step_count"]
+        if not isinstance(lrs, dict) or not set(lrs) <= set(PARAM_NAMES) or \
+                not all(_real(x) for x in lrs.values()):
+            raise ValueError(f"optimiser lrs must map some of {', '.join(PARAM_NAMES)} to numbers")
+        if not isinstance(betas, list | tuple) or len(betas) != 2 or not all(_real(b) for b in betas):
+            raise ValueError("optimiser betas must be two numbers")
+        if not _real(eps) or not isinstance(steps, int) or isinstance(steps, bool) or steps < 0:
+            raise ValueError("optimiser eps must be a number and step_count an integer >= 0")
+        m, v = state["exp_avg"], state["exp_avg_sq"]
+        if not isinstance(m, dict) or not isinstance(v, dict) or set(m) != set(v) or not set(m) <= set(lrs):
+            raise ValueError("optimiser moments must be two dicts over the same parameters")
+        for k in m:
+            if not (_tensor(m[k]) and _tensor(v[k]) and m[k].shape == v[k].shape
+                    and m[k].dtype == v[k].dtype):
+                raise ValueError(f"optimiser moments of {k} must be two floating tensors of one shape")
+        self.lrs = {k: float(x) for k, x in lrs.items()}
+        self.betas = (float(betas[0]), float(betas[1]))
+        self.eps = float(eps)
+        self.step_count = int(steps)
+        self.exp_avg = {k: x.clone() for k, x in m.items()}
+        self.exp_avg_sq = {k: x.clone() for k, x in v.items()}
+
+
+def _real(x: object) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _tensor(x: object) -> bool:
+    return isinstance(x, torch.Tensor) and x.layout == torch.strided and x.is_floating_point()

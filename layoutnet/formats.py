@@ -14,7 +14,7 @@ from typing import Literal
 
 import numpy as np
 
-from pipeline.errors import PanoError
+from pipeline.errors import PanoError, load_npy
 
 #: HorizonNet's JSON stores corners normalised by the size it infers at.
 HORIZONNET_W, HORIZONNET_H = 1024, 512
@@ -87,6 +87,8 @@ def read_horizonnet_json(path: Path, width: int = HORIZONNET_W, height: int = HO
         data = json.loads(path.read_text())
     except json.JSONDecodeError as e:
         raise PanoError(path, f"not valid JSON: {e.msg} at line {e.lineno} column {e.colno}") from None
+    except RecursionError:
+        raise PanoError(path, "JSON nested too deeply") from None
     except (OSError, UnicodeDecodeError) as e:
         raise PanoError(path, f"cannot read: {e}") from None
     if not isinstance(data, dict) or "uv" not in data:
@@ -151,10 +153,7 @@ def read_corner_txt(path: Path, width: int, height: int) -> SuppliedLayout:
 def read_boundaries_npy(path: Path) -> SuppliedLayout:
     """[2,W] float latitudes in radians: ceiling boundary (> 0), floor boundary (< 0)."""
     path = Path(path)
-    try:
-        b = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as e:
-        raise PanoError(path, f"not a readable .npy array: {str(e).splitlines()[0]}") from None
+    b = load_npy(path)
     if b.ndim != 2 or b.shape[0] != 2 or b.shape[1] < 8:
         raise PanoError(path, f"expected [2,W] boundary latitudes (W >= 8), got shape {list(b.shape)}")
     if not np.issubdtype(b.dtype, np.floating):

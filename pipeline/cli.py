@@ -21,8 +21,12 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from pipeline.console import console
+from rich.markup import escape
+
+from pipeline.console import console, err_console
 from pipeline.errors import PanoError
+from pipeline.fsutil import LOCK_NAME, run_folder_lock
+from pipeline.paths import check_run_folder, default_run_folder, is_run_folder
 
 app = typer.Typer(
     name="pano-pipe",
@@ -49,36 +53,53 @@ SetOpt = Annotated[
 
 
 @app.callback()
-def _main(debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks.")] = False) -> None:
+def _main(
+    debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks.")] = False,
+    max_megapixels: Annotated[
+        Optional[float],
+        typer.Option("--max-megapixels", min=0.001, help="Refuse larger images (default 64; env PANO_PIPE_MAX_MEGAPIXELS)."),
+    ] = None,
+) -> None:
     _state["debug"] = debug
+    if max_megapixels is not None:
+        os.environ["PANO_PIPE_MAX_MEGAPIXELS"] = repr(max_megapixels)
 
 
 # -- helpers ------------------------------------------------------------------
 def load_config(path: Path | None, overrides: list[str] | None) -> tuple[dict[str, dict], str]:
     """Stage parameters from a YAML/JSON file plus `--set stage.param=value` overrides."""
+    import yaml  # JSON is YAML, so one parser reads both
+
     config: dict[str, dict] = {}
     source = "--set"
     if path is not None:
         source = str(path)
         if not path.is_file():
             raise PanoError(path, "config file does not exist")
-        import yaml  # JSON is YAML, so one parser reads both
-
         try:
-            loaded = yaml.safe_load(path.read_text()) or {}
+            loaded = yaml.safe_load(path.read_bytes().decode("utf-8")) or {}
+        except UnicodeDecodeError as e:
+            raise PanoError(path, f"not UTF-8 text (byte {e.start})") from None
+        except OSError as e:
+            raise PanoError(path, f"cannot read: {e.strerror or e}") from None
         except yaml.YAMLError as e:
             raise PanoError(path, f"not valid YAML/JSON: {str(e).splitlines()[0]}") from None
+        except RecursionError:
+            raise PanoError(path, "nested too deeply") from None
         if not isinstance(loaded, dict) or not all(isinstance(v, dict) for v in loaded.values()):
             raise PanoError(path, "expected a mapping {stage: {param: value}}")
-        config = {k: dict(v) for k, v in loaded.items()}
+        config = {str(k): dict(v) for k, v in loaded.items()}
     for item in overrides or []:
-        import yaml
-
         lhs, sep, value = item.partition("=")
         stage, dot, param = lhs.partition(".")
         if not sep or not dot or not stage or not param:
             raise PanoError("--set", f"{item!r} is not STAGE.PARAM=VALUE")
-        config.setdefault(stage, {})[param] = yaml.safe_load(value)
+        try:
+            config.setdefault(stage, {})[param] = yaml.safe_load(value)
+        except yaml.YAMLError as e:
+            raise PanoError("--set", f"{item!r}: the value is not valid YAML ({str(e).splitlines()[0]})") from None
+        except RecursionError:
+            raise PanoError("--set", f"{item!r}: the value is nested too deeply") from None
     return config, source
 
 
@@ -89,20 +110,20 @@ def make_engine(scene_dir: Path, out: Path | None, config_file: Path | None, ove
 
     scene = load_scene(scene_dir)
     config, source = load_config(config_file, overrides)
-    out_dir = out if out is not None else Path("runs") / scene.name
+    out_dir = out if out is not None else default_run_folder(scene.name)
     return Engine(scene, out_dir, build_registry(), config, config_source=source)
 
 
 def print_status_table(engine) -> None:
     plans = engine.plan()
-    table = Table(title=f"{engine.scene.name} → {engine.out_dir}")
+    table = Table(title=escape(f"{engine.scene.name} → {engine.out_dir}"))
     for col in ("stage", "state", "last duration", "note"):
         table.add_column(col)
     colours = {"up-to-date": "green", "stale": "yellow", "missing": "red", "skipped": "dim"}
     for name in engine.order:
         p = plans[name]
         dur = f"{p.last_duration_s:.2f} s" if p.last_duration_s is not None else "—"
-        table.add_row(name, f"[{colours[p.state]}]{p.state}[/]", dur, p.reason)
+        table.add_row(name, f"[{colours[p.state]}]{p.state}[/]", dur, escape(p.reason))
     console.print(table)
 
 
@@ -128,7 +149,7 @@ def run(
     for col in ("stage", "outcome", "seconds", "note"):
         table.add_column(col)
     for r in results:
-        table.add_row(r.name, r.outcome, f"{r.duration_s:.2f}" if r.outcome == "ran" else "", r.reason)
+        table.add_row(r.name, r.outcome, f"{r.duration_s:.2f}" if r.outcome == "ran" else "", escape(r.reason))
     console.print(table)
     evaluated = engine.out_dir / "evaluate" / "artifact.json"
     if any(r.name == "evaluate" and r.outcome in ("ran", "cached") for r in results) and evaluated.is_file():
@@ -150,12 +171,21 @@ def clean(scene: SceneArg, out: OutOpt = None) -> None:
     from pipeline.scene_loader import load_scene
 
     s = load_scene(scene, check_images=False)
-    out_dir = out if out is not None else Path("runs") / s.name
-    if out_dir.exists():
-        shutil.rmtree(out_dir)
-        console.print(f"removed {out_dir}")
-    else:
-        console.print(f"nothing to clean: {out_dir} does not exist")
+    out_dir = out if out is not None else default_run_folder(s.name)
+    if not out_dir.exists():
+        console.print(f"nothing to clean: {escape(str(out_dir))} does not exist", soft_wrap=True)
+        return
+    check_run_folder(out_dir, s.root)
+    if not is_run_folder(out_dir):  # an empty folder: nothing of ours to delete
+        console.print(f"nothing to clean: {escape(str(out_dir))} holds no pano-pipe run", soft_wrap=True)
+        return
+    with run_folder_lock(out_dir):
+        for child in out_dir.iterdir():  # the lock file last: it is held until the end
+            if child.name != LOCK_NAME:
+                shutil.rmtree(child) if child.is_dir() and not child.is_symlink() else child.unlink()
+    (out_dir / LOCK_NAME).unlink(missing_ok=True)
+    out_dir.rmdir()
+    console.print(f"removed {escape(str(out_dir))}", soft_wrap=True)
 
 
 @app.command()
@@ -166,7 +196,7 @@ def schema(out: Annotated[Path, typer.Argument(help="Folder to write the JSON Sc
     out.mkdir(parents=True, exist_ok=True)
     for name, model in all_schemas().items():
         (out / f"{name}.schema.json").write_text(json.dumps(model.model_json_schema(), indent=2))
-        console.print(f"wrote {out / (name + '.schema.json')}")
+        console.print(f"wrote {escape(str(out / (name + '.schema.json')))}")
 
 
 @app.command("import-nerfstudio")
@@ -180,7 +210,7 @@ def import_nerfstudio_command(
     from pipeline.importers import import_nerfstudio
 
     path = import_nerfstudio(transforms, out, world_up=world_up, test_every=test_every)
-    console.print(f"wrote {path}")
+    console.print(f"wrote {escape(str(path))}", soft_wrap=True)
 
 
 @bench_app.command("render")
@@ -253,33 +283,78 @@ def _register_commands() -> None:
 _register_commands()
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, handled like Ctrl-C: stages clean up, training checkpoints, exit code 130."""
+
+
+def _on_sigterm(signum, frame) -> None:
+    raise Terminated()
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _fail(message: str, code: int) -> None:
+    """One line on stderr, never parsed as markup (user text may hold '[/b]'), then exit."""
+    from rich.text import Text
+
+    err_console.print(Text.assemble(("error:", "red"), " ", _one_line(message)), soft_wrap=True)
+    sys.exit(code)
+
+
+def _click_exceptions(name: str) -> tuple[type, ...]:
+    """click's exception class `name`, and typer's vendored copy of it (typer >= 0.2x ships its own click)."""
+    import importlib
+
+    found = []
+    for module in ("click.exceptions", "typer._click.exceptions", "typer.exceptions"):
+        try:
+            found.append(getattr(importlib.import_module(module), name))
+        except (ImportError, AttributeError):
+            pass
+    return tuple(found)
+
+
 def main() -> None:
-    """Console entry point: one-line errors with exit code 2 unless --debug."""
+    """Console entry point. Exit codes: 0 success, 1 internal error, 2 bad input (one line naming
+    the file and the problem), 130 interrupted (Ctrl-C or SIGTERM). --debug shows tracebacks."""
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _on_sigterm)
     try:
-        app(standalone_mode=False)
+        code = app(standalone_mode=False)
+        # typer returns an Exit's code instead of raising it when standalone_mode is off
+        if isinstance(code, int) and code != 0:
+            sys.exit(code)
     except PanoError as e:
         if _state["debug"]:
             raise
-        console.print(f"[red]error:[/] {e}", soft_wrap=True)
+        _fail(str(e), e.exit_code)
+    except SystemExit:
+        raise
+    except _click_exceptions("Exit") as e:
         sys.exit(e.exit_code)
-    except (typer.Exit, SystemExit) as e:
-        code = getattr(e, "exit_code", getattr(e, "code", 0))
-        sys.exit(code)
-    except KeyboardInterrupt:
-        console.print("[red]interrupted[/]: finished stages are kept, the running one left its old result")
+    except (KeyboardInterrupt, *_click_exceptions("Abort")):
+        err_console.print("interrupted: finished stages are kept, the running one left its old result")
         sys.exit(130)
-    except Exception as e:  # click usage errors and unexpected failures
-        import click
-
-        if isinstance(e, click.exceptions.ClickException):
-            e.show()
-            sys.exit(2)
-        if isinstance(e, click.exceptions.Abort):
-            sys.exit(130)
+    except _click_exceptions("ClickException") as e:  # usage errors: one line, bad input
+        _fail(e.format_message(), 2)
+    except OSError as e:  # the environment: a full disk, a read-only folder, no permission
         if _state["debug"]:
             raise
-        console.print(f"[red]error:[/] {type(e).__name__}: {e} (rerun with --debug for the traceback)", soft_wrap=True)
-        sys.exit(1)
+        where = e.filename or "pano-pipe"
+        _fail(f"{where}: {e.strerror or e}", 2 if e.errno is not None else 1)
+    except RecursionError:
+        if _state["debug"]:
+            raise
+        _fail("input nested too deeply (rerun with --debug for the traceback)", 2)
+    except Exception as e:  # unexpected failures: a bug of ours
+        if _state["debug"]:
+            raise
+        _fail(f"{type(e).__name__}: {e} (an internal error; rerun with --debug for the traceback)", 1)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,10 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-console = Console(stderr=True, highlight=False)
+#: What pano-pipe reports (progress, tables, warnings, results) goes to stdout, so it can be
+#: piped or saved; stderr holds only the one-line error of a failed command (err_console).
+console = Console(highlight=False)
+err_console = Console(stderr=True, highlight=False)
 
 
 def make_progress(*extra_columns) -> Progress:
@@ -31,7 +34,7 @@ def make_progress(*extra_columns) -> Progress:
         TimeRemainingColumn(),
         console=console,
         transient=False,
-        disable=not sys.stderr.isatty(),
+        disable=not console.is_terminal,
     )
 
 

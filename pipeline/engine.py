@@ -7,6 +7,7 @@ anywhere reruns exactly the stages downstream of it.
 
 from __future__ import annotations
 
+import errno
 import graphlib
 import json
 import time
@@ -17,12 +18,18 @@ from typing import Literal
 
 from pydantic import BaseModel, ValidationError
 
+from rich.markup import escape
+
 from pipeline.console import console, track
 from pipeline.errors import PanoError, describe_validation_error
-from pipeline.fsutil import atomic_folder, sha256_file, sha256_json
+from pipeline.fsutil import atomic_folder, remove_stale_temporaries, run_folder_lock, sha256_file, sha256_json
+from pipeline.paths import check_run_folder, mark_run_folder
 from pipeline.stage import Loaded, StageContext, StageSpec
 from schemas.artifact import Artifact, ArtifactMeta
 from schemas.scene import Scene
+
+#: OSErrors that are the machine's, not ours: reported as one line naming the place.
+_ENVIRONMENT_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM}
 
 State = Literal["up-to-date", "stale", "missing", "skipped"]
 ARTIFACT = "artifact.json"
@@ -39,6 +46,8 @@ class StagePlan:
     last_duration_s: float | None = None
     upstream: dict[str, str] = field(default_factory=dict)
     code_version: str = ""
+    #: The parameters as they enter the key (file parameters by content hash).
+    params_json: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -84,12 +93,59 @@ def read_meta(stage_dir: Path) -> ArtifactMeta | None:
 def load_artifact(stage_dir: Path, output: type[BaseModel]) -> Loaded:
     path = stage_dir / ARTIFACT
     try:
-        art = Artifact[output].model_validate_json(path.read_text())
+        art = Artifact[output].model_validate_json(path.read_bytes())
     except FileNotFoundError:
         raise PanoError(path, "missing; run the stage first") from None
+    except OSError as e:
+        raise PanoError(path, f"cannot read: {e.strerror or e}") from None
     except ValidationError as e:
         raise describe_validation_error(path, e) from None
     return Loaded(data=art.data, dir=stage_dir)
+
+
+def artifact_problem(stage_dir: Path, output: type[BaseModel]) -> str | None:
+    """Why an artifact whose key matches cannot be trusted, or None: its data must validate and
+    every file it was written with must still be there with the size it had."""
+    try:
+        art = Artifact[output].model_validate_json((stage_dir / ARTIFACT).read_bytes())
+    except (OSError, ValidationError) as e:
+        return f"{ARTIFACT} does not validate ({str(e).splitlines()[0]})"
+    for rel, size in art.meta.files.items():
+        f = stage_dir / rel
+        if not f.is_file():
+            return f"{stage_dir.name}/{rel} is missing"
+        if f.stat().st_size != size:
+            return f"{stage_dir.name}/{rel} changed size ({f.stat().st_size} bytes, written with {size})"
+    return None
+
+
+def file_sizes(folder: Path) -> dict[str, int]:
+    """Every file below `folder` (relative POSIX path -> size in bytes)."""
+    return {
+        p.relative_to(folder).as_posix(): p.stat().st_size
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p.name != ARTIFACT
+    }
+
+
+def stale_reason(meta: ArtifactMeta, plan: StagePlan, params_json: dict, scene_hash: str) -> str:
+    """What changed since an artifact was made (its key no longer matches)."""
+    changed = sorted(k for k in params_json.keys() | meta.params.keys() if params_json.get(k) != meta.params.get(k))
+    if changed:
+        return "parameters changed: " + ", ".join(changed[:4]) + (" ..." if len(changed) > 4 else "")
+    if meta.code_version != plan.code_version:
+        return "code changed"
+    ups = sorted(k for k in plan.upstream.keys() | meta.upstream.keys()
+                 if plan.upstream.get(k) != meta.upstream.get(k))
+    if ups:
+        return "upstream changed: " + ", ".join(ups)
+    if meta.scene_hash != scene_hash:
+        return "scene inputs changed"
+    return "model files changed"
+
+
+#: The manifest field of a view that names its file of each scene input kind.
+_KIND_FIELDS = {"images": "image", "layout": "layout", "depth": "depth", "gt": "gt_depth"}
 
 
 class Engine:
@@ -102,7 +158,7 @@ class Engine:
         config_source: str = "config",
     ):
         self.scene = scene
-        self.out_dir = Path(out_dir)
+        self.out_dir = check_run_folder(Path(out_dir), scene.root)
         self.registry = registry
         self.order = topological_order(registry)
         self.config = config or {}
@@ -115,32 +171,53 @@ class Engine:
 
     # -- planning ---------------------------------------------------------
     def params_for(self, name: str) -> BaseModel:
+        """The stage's validated parameters; a file parameter (a model) resolved to the file it names."""
         spec = self.registry[name]
         try:
-            return spec.params.model_validate(self.config.get(name, {}))
+            params = spec.params.model_validate(self.config.get(name, {}))
         except ValidationError as e:
             raise describe_validation_error(f"{self.config_source} [{name}]", e) from None
+        files = {k: self._param_file(name, k, v) for k, v in params if isinstance(v, Path)}
+        return params.model_copy(update=files) if files else params
 
-    def scene_fingerprint(self, kinds: tuple[str, ...]) -> str:
-        parts = [sha256_json(self.scene.manifest.model_dump(mode="json"))]
+    def _param_file(self, stage: str, field_name: str, value: Path) -> Path:
+        """A file named by a parameter: as given (from the working folder), else relative to the
+        scene folder; the same rule for the cache key and for the stage."""
+        given = Path(value).expanduser()
+        for candidate in [given] if given.is_absolute() else [given, self.scene.root / given]:
+            if candidate.is_file():
+                return candidate.resolve()
+        raise PanoError(value, f"file does not exist ({stage}.{field_name}; looked in the working folder "
+                               "and the scene folder)")
+
+    def scene_fingerprint(self, kinds: tuple[str, ...], views: list | None = None) -> str:
+        """Hash of the manifest entries of `views` (default all) and of their files of `kinds`."""
+        views = self.scene.views if views is None else views
+        # only the manifest fields of the kinds read: naming a depth file must not rerun layout
+        unread = {field for kind, field in _KIND_FIELDS.items() if kind not in kinds}
+        manifest = self.scene.manifest.model_dump(
+            mode="json", exclude={"views", "name"} | ({"floor_plan"} if "gt" not in kinds else set()))
+        manifest["views"] = [v.model_dump(mode="json", exclude=unread) for v in views]
+        parts = [sha256_json(manifest)]
         for kind in sorted(kinds):
-            if kind not in self._fingerprints:
-                self._fingerprints[kind] = sha256_json(
-                    {str(p.relative_to(self.scene.root)): sha256_file(p) for p in self._scene_files(kind)}
-                )
-            parts.append(f"{kind}:{self._fingerprints[kind]}")
+            hashes = {}
+            for p in self._scene_files(kind, views):
+                if p not in self._file_hashes:
+                    self._file_hashes[p] = sha256_file(p)
+                hashes[p.relative_to(self.scene.root).as_posix()] = self._file_hashes[p]
+            parts.append(f"{kind}:{sha256_json(hashes)}")
         return sha256_json(parts)
 
-    def _scene_files(self, kind: str) -> list[Path]:
+    def _scene_files(self, kind: str, views: list) -> list[Path]:
         s = self.scene
         if kind == "images":
-            files = [s.image_path(v) for v in s.views]
+            files = [s.image_path(v) for v in views]
         elif kind == "layout":
-            files = [s.layout_path(v) for v in s.views]
+            files = [s.layout_path(v) for v in views]
         elif kind == "depth":
-            files = [s.depth_path(v) for v in s.views]
+            files = [s.depth_path(v) for v in views]
         elif kind == "gt":
-            files = [s.gt_depth_path(v) for v in s.views]
+            files = [s.gt_depth_path(v) for v in views]
             if s.manifest.floor_plan:
                 files.append(s.path(s.manifest.floor_plan))
         else:
@@ -156,6 +233,10 @@ class Engine:
                     self._file_hashes[value] = sha256_file(value)
                 out[field_name] = self._file_hashes[value]
         return out
+
+    def _stage_scene_hash(self, spec: StageSpec, params: BaseModel) -> str:
+        views = spec.reads_views(self.scene, params) if spec.reads_views else None
+        return self.scene_fingerprint(spec.scene_inputs, views)
 
     def plan(self) -> dict[str, StagePlan]:
         plans: dict[str, StagePlan] = {}
@@ -177,25 +258,24 @@ class Engine:
                 dep: plans[dep].key or "skipped" for dep in spec.inputs
             }
             code = spec.code_version()
+            file_hashes = self.param_file_hashes(params)
+            # a model enters the key by content, not by where it lies
+            params_json = {**params.model_dump(mode="json"), **{k: f"sha256:{h}" for k, h in file_hashes.items()}}
+            scene_hash = self._stage_scene_hash(spec, params)
             key = sha256_json(
-                {
-                    "stage": name,
-                    "scene": self.scene_fingerprint(spec.scene_inputs),
-                    "params": params.model_dump(mode="json"),
-                    "param_files": self.param_file_hashes(params),
-                    "code": code,
-                    "upstream": upstream,
-                }
+                {"stage": name, "scene": scene_hash, "params": params_json, "code": code, "upstream": upstream}
             )
+            plan = StagePlan(name, "missing", params, key, last_duration_s=last, upstream=upstream,
+                             code_version=code, params_json=params_json)
             if meta is None:
-                state: State = "missing"
-            elif meta.key == key:
-                state = "up-to-date"
+                plan.reason = "never run" if not (self.out_dir / name).exists() else "no readable artifact.json"
+            elif meta.key != key:
+                plan.state, plan.reason = "stale", stale_reason(meta, plan, params_json, scene_hash)
+            elif problem := artifact_problem(self.out_dir / name, spec.output):
+                plan.state, plan.reason = "stale", problem
             else:
-                state = "stale"
-            plans[name] = StagePlan(
-                name, state, params, key, last_duration_s=last, upstream=upstream, code_version=code
-            )
+                plan.state = "up-to-date"
+            plans[name] = plan
         return plans
 
     # -- running ----------------------------------------------------------
@@ -217,9 +297,14 @@ class Engine:
         resume: bool = False,
     ) -> list[StageResult]:
         """Run the selected stages. `target` is always rerun; `force` reruns every selected stage."""
+        with run_folder_lock(self.out_dir):
+            mark_run_folder(self.out_dir, self.scene.root)
+            remove_stale_temporaries(self.out_dir)
+            return self._run_locked(target, until, force, resume)
+
+    def _run_locked(self, target: str | None, until: str | None, force: bool, resume: bool) -> list[StageResult]:
         plans = self.plan()
         results: list[StageResult] = []
-        self.out_dir.mkdir(parents=True, exist_ok=True)
         for name in self.select(target, until):
             p = plans[name]
             if p.state == "skipped":
@@ -241,7 +326,7 @@ class Engine:
                 inputs[dep] = None
             else:
                 inputs[dep] = load_artifact(self.out_dir / dep, self.registry[dep].output)
-        console.print(f"[bold cyan]▶ {p.name}[/] {spec.description}")
+        console.print(f"[bold cyan]▶ {p.name}[/] {escape(spec.description)}")
         self._log(p.name, "start")
         t0 = time.perf_counter()
         scratch = self.out_dir / ".scratch" / p.name
@@ -263,8 +348,9 @@ class Engine:
                 meta = ArtifactMeta(
                     stage=p.name,
                     key=p.key or "",
-                    scene_hash=self.scene_fingerprint(spec.scene_inputs),
-                    params=p.params.model_dump(mode="json"),
+                    scene_hash=self._stage_scene_hash(spec, p.params),
+                    params=p.params_json,
+                    files=file_sizes(tmp),
                     code_version=p.code_version,  # as planned: the key was computed from it
                     upstream=p.upstream,
                     created=datetime.now(timezone.utc),
@@ -275,7 +361,10 @@ class Engine:
                 (tmp / ARTIFACT).write_text(art.model_dump_json(indent=2))
         except BaseException as e:
             outcome = "interrupted" if isinstance(e, KeyboardInterrupt) else "failed"
-            self._log(p.name, outcome, duration_s=time.perf_counter() - t0, error=str(e))
+            self._log(p.name, outcome, duration_s=time.perf_counter() - t0, error=str(e) or type(e).__name__)
+            if isinstance(e, OSError) and e.errno in _ENVIRONMENT_ERRNOS:
+                # a full disk or a read-only folder: name where, even when the library did not
+                raise PanoError(e.filename or self.out_dir / p.name, f"{e.strerror} (stage {p.name})") from e
             raise
         self._log(p.name, "ok", duration_s=duration)
         console.print(f"[green]✓ {p.name}[/] {duration:.2f} s")

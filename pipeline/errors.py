@@ -24,3 +24,40 @@ def describe_validation_error(where: str | Path, err) -> PanoError:
     msg = msg.removeprefix("Value error, ")
     extra = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
     return PanoError(where, f"{field}: {msg}{extra}" if field else f"{msg}{extra}")
+
+
+def read_json(path: Path):
+    """A user's JSON file, every failure a one-line PanoError naming it."""
+    import json
+
+    path = Path(path)
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise PanoError(path, f"not UTF-8 text (byte {e.start})") from None
+    except OSError as e:
+        raise PanoError(path, f"cannot read: {e.strerror or e}") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise PanoError(path, f"invalid JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
+    except RecursionError:
+        raise PanoError(path, "JSON nested too deeply") from None
+
+
+def load_npy(path: Path):
+    """A user's .npy array (never pickled objects), every failure a one-line PanoError naming it."""
+    import numpy as np
+
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            if f.read(6) != b"\x93NUMPY":  # np.load would otherwise try to unpickle it
+                raise PanoError(path, "not a readable .npy array (no .npy header)")
+        arr = np.load(path, allow_pickle=False)
+    except ValueError as e:
+        why = "it holds Python objects (pickled), which pano-pipe never loads" if "allow_pickle" in str(e) else str(e)
+        raise PanoError(path, f"not a readable .npy array: {why}") from None
+    except (OSError, EOFError) as e:
+        raise PanoError(path, f"not a readable .npy array: {getattr(e, 'strerror', None) or e}") from None
+    return arr

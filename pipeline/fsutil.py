@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import os
@@ -10,6 +11,10 @@ import shutil
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
+
+#: Name prefixes of the temporary folders atomic_folder makes beside their target.
+TEMP_PREFIXES = (".tmp-", ".old-")
+LOCK_NAME = ".lock"
 
 
 @contextlib.contextmanager
@@ -52,3 +57,50 @@ def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
 
 def sha256_json(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
+
+
+@contextlib.contextmanager
+def run_folder_lock(folder: Path) -> Iterator[None]:
+    """Hold an exclusive lock on a run folder for the life of one run. A second process on the
+    same folder is refused at once with a one-line error. The kernel releases the lock when the
+    process ends, however it ends, so a killed run never leaves a stale lock behind."""
+    import fcntl
+
+    from pipeline.errors import PanoError
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    lock_path = folder / LOCK_NAME
+    fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            if e.errno not in (errno.EAGAIN, errno.EACCES):
+                raise
+            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "?"
+            raise PanoError(folder, f"in use by another pano-pipe run (pid {holder}); wait for it to "
+                                    "finish, or choose another --out") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # closing the descriptor releases the lock
+
+
+def remove_stale_temporaries(folder: Path) -> list[Path]:
+    """Delete what interrupted runs left in a run folder (call it under the folder's lock):
+    atomic_folder's `.tmp-*` / `.old-*` siblings and half-written `*.tmp` files of the scratch space."""
+    folder = Path(folder)
+    removed = []
+    for p in folder.iterdir() if folder.is_dir() else ():
+        if p.name.startswith(TEMP_PREFIXES) and p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+            removed.append(p)
+    scratch = folder / ".scratch"
+    if scratch.is_dir():
+        for p in scratch.rglob("*.tmp"):
+            if p.is_file() and not p.is_symlink():
+                p.unlink(missing_ok=True)
+                removed.append(p)
+    return removed

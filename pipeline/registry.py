@@ -10,6 +10,11 @@ from __future__ import annotations
 from functools import cache
 
 from pipeline.stage import StageSpec
+from schemas.scene import Scene, View
+
+
+def train_views(scene: Scene, params) -> list[View]:
+    return scene.manifest.train_views()
 
 
 @cache
@@ -18,37 +23,37 @@ def build_registry() -> dict[str, StageSpec]:
 
     specs = [
         StageSpec(
-            "layout", layout.Params, layout.Output, layout.run,
+            "layout", layout.Params, layout.Output, layout.run, reads_views=layout.selected_views,
             scene_inputs=("images", "layout"), skip_reason=layout.skip_reason,
             code=("stages.layout", "layoutnet", "panogeom"),
             description="room layout per view (HorizonNet-compatible ONNX or supplied boundaries)",
         ),
         StageSpec(
-            "depth", depth.Params, depth.Output, depth.run,
+            "depth", depth.Params, depth.Output, depth.run, reads_views=train_views,
             scene_inputs=("images", "depth"), skip_reason=depth.skip_reason,
             code=("stages.depth", "depthnet", "panogeom"),
             description="depth per view (ONNX model or supplied files)",
         ),
         StageSpec(
-            "union", union.Params, union.Output, union.run,
+            "union", union.Params, union.Output, union.run, reads_views=train_views,
             inputs={"layout": True}, scene_inputs=(),
             code=("stages.union",),
             description="union of the per-view floor plans in the world frame",
         ),
         StageSpec(
-            "sampling", sampling.Params, sampling.Output, sampling.run,
+            "sampling", sampling.Params, sampling.Output, sampling.run, reads_views=train_views,
             inputs={"union": True, "layout": True}, scene_inputs=("images",),
             code=("stages.sampling", "stages.union", "stages.cloud_io", "panogeom"),
             description="box sampling of the floor plan into a layout point cloud",
         ),
         StageSpec(
-            "align", align.Params, align.Output, align.run,
+            "align", align.Params, align.Output, align.run, reads_views=train_views,
             inputs={"depth": True, "layout": False, "sampling": False}, scene_inputs=("images",),
             code=("stages.align", "stages.cloud_io", "panogeom"),
             description="depth clouds scaled to the layout and merged with it (open3d)",
         ),
         StageSpec(
-            "train", train.Params, train.Output, train.run,
+            "train", train.Params, train.Output, train.run, reads_views=train_views,
             inputs={"align": False, "sampling": False, "union": False}, scene_inputs=("images",),
             code=("stages.train", "stages.cloud_io", "gaussians", "splatting"),
             description="360° Gaussian splatting optimisation",

@@ -2,14 +2,34 @@
 
 from __future__ import annotations
 
-import json
+import os
 from pathlib import Path
 
 import cv2
 from pydantic import ValidationError
 
-from pipeline.errors import PanoError, describe_validation_error
+from pipeline.errors import PanoError, describe_validation_error, read_json
 from schemas.scene import Scene, SceneManifest
+
+#: Images over this many megapixels are refused before decoding (a 20000x10000 PNG of zeros is
+#: 583 KB on disk and 600 MB decoded). `--max-megapixels` or PANO_PIPE_MAX_MEGAPIXELS change it.
+DEFAULT_MAX_MEGAPIXELS = 64.0
+#: The smallest panorama the stages can use (a pixel is 360/W degrees wide).
+MIN_IMAGE_HEIGHT = 8
+
+
+def max_megapixels() -> float:
+    """The image-size limit in force: the environment's, else the default."""
+    raw = os.environ.get("PANO_PIPE_MAX_MEGAPIXELS")
+    if raw is None:
+        return DEFAULT_MAX_MEGAPIXELS
+    try:
+        value = float(raw)
+    except ValueError:
+        raise PanoError("PANO_PIPE_MAX_MEGAPIXELS", f"must be a number of megapixels, got {raw!r}") from None
+    if not value > 0:
+        raise PanoError("PANO_PIPE_MAX_MEGAPIXELS", f"must be positive, got {raw!r}")
+    return value
 
 
 def load_scene(root: str | Path, check_images: bool = True) -> Scene:
@@ -21,33 +41,74 @@ def load_scene(root: str | Path, check_images: bool = True) -> Scene:
     manifest_path = root / "scene.json"
     if not manifest_path.is_file():
         raise PanoError(manifest_path, "missing (a scene folder needs a scene.json manifest)")
-    try:
-        raw = json.loads(manifest_path.read_text())
-    except json.JSONDecodeError as e:
-        raise PanoError(manifest_path, f"invalid JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
+    raw = read_json(manifest_path)
     try:
         manifest = SceneManifest.model_validate(raw)
     except ValidationError as e:
         raise describe_validation_error(manifest_path, e) from None
     scene = Scene(root=root, manifest=manifest)
+    limit = max_megapixels()
     for i, view in enumerate(manifest.views):
-        for field in ("layout", "depth", "gt_depth"):
-            rel = getattr(view, field)
-            if rel and not (root / rel).is_file():
-                raise PanoError(root / rel, f"missing (named by scene.json views.{i}.{field})")
+        files = {"layout": scene.layout_path(view), "depth": scene.depth_path(view),
+                 "gt_depth": scene.gt_depth_path(view)}
+        for field, path in files.items():
+            if getattr(view, field) and not path.is_file():
+                raise PanoError(path, f"missing (named by scene.json views.{i}.{field})")
+            if path is not None and path.suffix.lower() == ".png":
+                check_image_size(path, limit, min_height=1)
         if check_images:
-            check_panorama(scene.image_path(view), f"scene.json views.{i}.image")
+            check_panorama(scene.image_path(view), f"scene.json views.{i}.image", limit)
+    if manifest.floor_plan:
+        scene.path(manifest.floor_plan, "scene.json floor_plan")
     return scene
 
 
-def check_panorama(path: Path, named_by: str) -> tuple[int, int]:
+def image_size(path: Path) -> tuple[int, int] | None:
+    """(H, W) from the file header without decoding the pixels, or None if the header is not
+    one Pillow reads (OpenCV then decodes it, under its own size limit)."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            w, h = im.size
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
+        return None
+    except Image.DecompressionBombError:  # Pillow's own limit; ours is checked by the caller
+        return None
+    return int(h), int(w)
+
+
+def check_image_size(path: Path, limit_mp: float, min_height: int = MIN_IMAGE_HEIGHT) -> tuple[int, int] | None:
+    """Refuse an image over `limit_mp` megapixels (or under `min_height` rows) from its header."""
+    from PIL import Image
+
+    Image.MAX_IMAGE_PIXELS = None  # Pillow would warn or refuse on its own terms; ours is clearer
+    hw = image_size(path)
+    if hw is None:
+        return None
+    h, w = hw
+    if h * w > limit_mp * 1e6:
+        raise PanoError(path, f"image is {w}x{h} ({h * w / 1e6:.0f} megapixels), over the limit of "
+                              f"{limit_mp:g}; resize it, or raise --max-megapixels")
+    if h < min_height:
+        raise PanoError(path, f"image is {w}x{h}; panoramas need at least {min_height} rows")
+    return hw
+
+
+def check_panorama(path: Path, named_by: str, limit_mp: float | None = None) -> tuple[int, int]:
     """Return (H, W) of an equirectangular image, or raise naming the problem."""
     if not path.is_file():
         raise PanoError(path, f"image missing (named by {named_by})")
+    limit_mp = max_megapixels() if limit_mp is None else limit_mp
+    check_image_size(path, limit_mp)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise PanoError(path, "unreadable image (not a format OpenCV can decode)")
     h, w = img.shape[:2]
     if w != 2 * h:
         raise PanoError(path, f"not an equirectangular 2:1 image: {w}x{h}")
+    if h < MIN_IMAGE_HEIGHT:
+        raise PanoError(path, f"image is {w}x{h}; panoramas need at least {MIN_IMAGE_HEIGHT} rows")
+    if img.ndim == 3 and img.shape[2] not in (3, 4):
+        raise PanoError(path, f"image has {img.shape[2]} channels; expected grey, RGB or RGBA")
     return h, w

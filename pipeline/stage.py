@@ -20,7 +20,7 @@ from typing import Any, Generic, TypeVar
 
 from pydantic import BaseModel
 
-from schemas.scene import Scene
+from schemas.scene import Scene, View
 
 P = TypeVar("P", bound=BaseModel)
 D = TypeVar("D", bound=BaseModel)
@@ -39,6 +39,9 @@ class StageSpec:
     #: a skipped optional input reaches `run` as None.
     inputs: dict[str, bool] = field(default_factory=dict)
     scene_inputs: tuple[str, ...] = ("images",)
+    #: The views whose manifest entries and files the stage reads (None = all): a changed test
+    #: image must not retrain the model.
+    reads_views: Callable[[Scene, BaseModel], list[View]] | None = None
     skip_reason: Callable[[Scene, BaseModel], str | None] | None = None
     #: Source the stage depends on (its module plus libraries like splatting/);
     #: their content hash is the stage's code version.
@@ -97,7 +100,9 @@ class StageContext(Generic[P]):
         return self.inputs.get(name)
 
     def warn(self, message: str) -> None:
+        from rich.markup import escape
+
         from pipeline.console import console
 
-        console.print(f"[yellow]warning:[/] {message}")
+        console.print(f"[yellow]warning:[/] {escape(message)}")
         self.warnings.append(message)

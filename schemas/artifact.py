@@ -24,6 +24,9 @@ class ArtifactMeta(BaseModel):
     created: datetime
     duration_s: float
     warnings: list[str] = Field(default_factory=list)
+    files: dict[str, int] = Field(
+        default_factory=dict, description="Every file the stage wrote (relative path -> bytes): checked before reuse."
+    )
 
 
 class Artifact(BaseModel, Generic[T]):

@@ -8,7 +8,13 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from pipeline.paths import safe_relative, safe_stem, scene_file
+
 Matrix4 = list[list[float]]
+
+#: Bounds that catch unit mistakes (millimetres for metres) and overflow before any geometry runs.
+MAX_CAMERA_HEIGHT = 100.0
+MAX_TRANSLATION = 1e5
 
 LAYOUT_SUFFIXES = (".json", ".txt", ".npy")
 DEPTH_SUFFIXES = (".png", ".npy")
@@ -24,7 +30,7 @@ class View(BaseModel):
     pose: Matrix4 = Field(description="Camera-to-world 4x4, row-major, metres; OpenCV axes, y down.")
     split: Literal["train", "test"] = "train"
     camera_height: float | None = Field(
-        default=None, gt=0, description="Camera height above the floor in metres, where known."
+        default=None, gt=0, le=MAX_CAMERA_HEIGHT, description="Camera height above the floor in metres, where known."
     )
     layout: str | None = Field(
         default=None, description="Supplied layout boundaries (.json HorizonNet, .txt corners, .npy [2,W])."
@@ -36,6 +42,16 @@ class View(BaseModel):
         default=None, description="Ground-truth depth (.npy metres) for evaluation only; never used to train."
     )
 
+    @field_validator("name")
+    @classmethod
+    def _safe_name(cls, name: str) -> str:
+        return safe_stem(name)
+
+    @field_validator("image", "layout", "depth", "gt_depth")
+    @classmethod
+    def _inside_scene(cls, rel: str | None) -> str | None:
+        return None if rel is None else safe_relative(rel)
+
     @field_validator("pose")
     @classmethod
     def _rigid(cls, pose: Matrix4) -> Matrix4:
@@ -44,6 +60,8 @@ class View(BaseModel):
             raise ValueError(f"must be 4x4, got shape {list(m.shape)}")
         if not np.all(np.isfinite(m)):
             raise ValueError("contains NaN or Inf")
+        if np.abs(m[:3, 3]).max() > MAX_TRANSLATION:
+            raise ValueError(f"translation {m[:3, 3].tolist()} is over {MAX_TRANSLATION:g} m; poses are in metres")
         if not np.allclose(m[3], [0, 0, 0, 1], atol=1e-6):
             raise ValueError(f"last row must be [0, 0, 0, 1], got {m[3].tolist()}")
         r = m[:3, :3]
@@ -76,6 +94,16 @@ class SceneManifest(BaseModel):
     floor_plan: str | None = Field(
         default=None, description="Ground-truth floor plan JSON (simulator), for evaluation only."
     )
+
+    @field_validator("name")
+    @classmethod
+    def _safe_name(cls, name: str | None) -> str | None:
+        return None if name is None else safe_stem(name)
+
+    @field_validator("floor_plan")
+    @classmethod
+    def _inside_scene(cls, rel: str | None) -> str | None:
+        return None if rel is None else safe_relative(rel)
 
     @model_validator(mode="after")
     def _unique_and_trainable(self) -> SceneManifest:
@@ -117,30 +145,31 @@ class Scene(BaseModel):
     def views(self) -> list[View]:
         return self.manifest.views
 
-    def path(self, rel: str) -> Path:
-        return self.root / rel
+    # Every path below goes through pipeline.paths.scene_file: it refuses what resolves
+    # outside the scene folder ('..', absolute paths, symlinks pointing out).
+    def path(self, rel: str, named_by: str | None = None) -> Path:
+        return scene_file(self.root, rel, named_by)
 
     def image_path(self, view: View) -> Path:
-        return self.root / view.image
+        return self.path(view.image, f"view {view.name!r} image")
 
     def layout_path(self, view: View) -> Path | None:
         """The supplied layout file: named in the manifest, else found as layout/<view>.{json,txt,npy}."""
         if view.layout:
-            return self.root / view.layout
-        return _first_existing(self.root / "layout", view.name, LAYOUT_SUFFIXES)
+            return self.path(view.layout, f"view {view.name!r} layout")
+        return self._first_existing("layout", view.name, LAYOUT_SUFFIXES)
 
     def depth_path(self, view: View) -> Path | None:
         if view.depth:
-            return self.root / view.depth
-        return _first_existing(self.root / "depth", view.name, DEPTH_SUFFIXES)
+            return self.path(view.depth, f"view {view.name!r} depth")
+        return self._first_existing("depth", view.name, DEPTH_SUFFIXES)
 
     def gt_depth_path(self, view: View) -> Path | None:
-        return self.root / view.gt_depth if view.gt_depth else None
+        return self.path(view.gt_depth, f"view {view.name!r} gt_depth") if view.gt_depth else None
 
-
-def _first_existing(folder: Path, stem: str, suffixes: tuple[str, ...]) -> Path | None:
-    for s in suffixes:
-        p = folder / f"{stem}{s}"
-        if p.is_file():
-            return p
-    return None
+    def _first_existing(self, folder: str, stem: str, suffixes: tuple[str, ...]) -> Path | None:
+        for s in suffixes:
+            p = self.root / folder / f"{stem}{s}"
+            if p.is_file():
+                return self.path(f"{folder}/{stem}{s}")
+        return None

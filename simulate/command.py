@@ -65,7 +65,9 @@ def simulate_command(
     profile: bool = typer.Option(False, "--profile", help="Print the time each effect / phase took."),
 ) -> SimulationResult:
     """Write a synthetic indoor scene folder with exact ground truth (depth, layout, floor plan)."""
-    from rich.console import Console
+    from rich.markup import escape
+
+    from pipeline.console import console
 
     result = generate_scene(
         Path(out),
@@ -79,9 +81,8 @@ def simulate_command(
         with_layout=with_layout,
         with_depth=with_depth,
     )
-    console = Console(stderr=True, highlight=False)
     console.print(
-        f"wrote {result.manifest_path} ({len(result.views)} views, {height}x{2 * height}, "
+        f"wrote {escape(str(result.manifest_path))} ({len(result.views)} views, {height}x{2 * height}, "
         f"effects: {', '.join(result.effects) or 'none'}) in {result.timings['total']:.2f} s"
     )
     if profile:

@@ -116,6 +116,18 @@ def _to_u8(img: np.ndarray) -> np.ndarray:
     return np.clip(np.round(img * 255.0), 0, 255).astype(np.uint8)
 
 
+#: Marks a scene folder the simulator wrote: only such a folder (or an empty one) is replaced.
+SIMULATED_MARKER = ".pano-pipe-simulated"
+
+
+def is_simulated_scene(folder: Path) -> bool:
+    """Written by the simulator: the marker (or, from before the marker, scene.json beside gt/)."""
+    folder = Path(folder)
+    return (folder / SIMULATED_MARKER).is_file() or (
+        (folder / "scene.json").is_file() and (folder / "gt" / "floor_plan.json").is_file()
+    )
+
+
 def _write_scene(
     tmp: Path, *, name, world, boxes, cams, height, fx, aa_samples, rngs, with_layout, with_depth, timings
 ) -> None:
@@ -195,6 +207,10 @@ def generate_scene(
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise ValueError(f"output {out_dir} exists and is not a folder")
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not is_simulated_scene(out_dir):
+        # replacing it would delete the user's files
+        raise ValueError(f"output {out_dir} is a folder the simulator did not write (no {SIMULATED_MARKER}); "
+                         "choose a new or empty folder")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     rngs = _rngs(seed)
@@ -209,6 +225,7 @@ def generate_scene(
     world.boxes = boxes
 
     with atomic_folder(out_dir) as tmp:
+        (tmp / SIMULATED_MARKER).write_text(f"preset={preset} seed={seed}\n")
         _write_scene(
             tmp,
             name=out_dir.name,

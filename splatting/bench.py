@@ -170,7 +170,9 @@ def bench_one(H, W, n, backend, repeats, seed=0):
             p.grad = None
         return out
 
-    fwd()  # warm-up (and the one-time compile)
+    ran = fwd().backend  # warm-up (and the one-time compile, or the wait for another process's)
+    if ran != backend:  # the kernel could not be built: do not label torch timings "cpp"
+        raise RuntimeError(f"bench: backend {backend!r} requested but {ran!r} ran (see the warning above)")
     with _PeakRSS() as mf:
         t_f, c_f = _time(fwd, repeats)
     fwdbwd()
@@ -258,6 +260,18 @@ def bench_tangent_error(W=1024, angles_deg=(0.5, 1, 2, 5, 10, 20, 40)):
     return rows
 
 
+def write_atomic(path, text: str) -> None:
+    """Write beside ``path`` and rename over it: a concurrent reader or a second bench
+    writing the same file sees one whole file, never a mix (the last writer wins)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{time.monotonic_ns()}.tmp")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def run_render_bench(resolutions=RESOLUTIONS, counts=COUNTS, backends=("cpp", "torch"), repeats=3,
                      out_json="docs/bench_render.json", out_md="docs/bench_render.md", quick=False,
                      cubemap_cases=None, torch_max_pairs=TORCH_MAX_PAIRS, progress=True) -> dict:
@@ -294,9 +308,9 @@ def run_render_bench(resolutions=RESOLUTIONS, counts=COUNTS, backends=("cpp", "t
     _print_tables(result)
     if out_json:
         Path(out_json).parent.mkdir(parents=True, exist_ok=True)
-        Path(out_json).write_text(json.dumps(result, indent=2))
+        write_atomic(out_json, json.dumps(result, indent=2))
     if out_md:
-        Path(out_md).write_text(to_markdown(result))
+        write_atomic(out_md, to_markdown(result))
     return result
 
 
@@ -454,7 +468,7 @@ def main(argv=None):
     ap.add_argument("--markdown-from-json", metavar="JSON", help="only rewrite --out-md from an earlier JSON result")
     a = ap.parse_args(argv)
     if a.markdown_from_json:
-        Path(a.out_md).write_text(to_markdown(json.loads(Path(a.markdown_from_json).read_text())))
+        write_atomic(a.out_md, to_markdown(json.loads(Path(a.markdown_from_json).read_text())))
         return
     res = tuple(tuple(int(v) for v in r.split("x")) for r in a.resolutions.split(","))
     counts = tuple(int(c) for c in a.counts.split(","))

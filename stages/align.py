@@ -80,7 +80,7 @@ class Params(BaseModel):
         "or one for all views.",
     )
     include_layout_points: bool = Field(default=True, description="Append the sampling stage's layout cloud.")
-    seed: int = 0
+    seed: int = Field(default=0, ge=0, le=2**32 - 1)
 
 
 def skip_reason(scene: Scene, params: Params) -> str | None:

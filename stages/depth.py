@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from pipeline.errors import PanoError
+from pipeline.errors import PanoError, load_npy
 from pipeline.stage import StageContext
 from schemas.depth import DepthOutput, ViewDepth
 from schemas.scene import Scene
@@ -35,7 +35,7 @@ Output = DepthOutput
 class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    model: str | None = Field(
+    model: Path | None = Field(
         default=None,
         description="ONNX depth model; a relative path is tried from the working folder, then the scene.",
     )
@@ -112,10 +112,7 @@ def read_depth_file(path: str | Path) -> np.ndarray:
         depth = raw.astype(np.float32) / 1000.0
         depth[raw == 0] = np.nan
     elif path.suffix.lower() == ".npy":
-        try:
-            depth = np.load(path, allow_pickle=False)
-        except Exception as exc:
-            raise PanoError(path, f"unreadable .npy depth ({type(exc).__name__})") from None
+        depth = load_npy(path)
         if depth.ndim == 3 and depth.shape[-1] == 1:
             depth = depth[..., 0]
         if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.number):
@@ -126,8 +123,11 @@ def read_depth_file(path: str | Path) -> np.ndarray:
     else:
         raise PanoError(path, "depth file must be .png (uint16 mm) or .npy (float metres)")
     h, w = depth.shape
-    if w != 2 * h or h < 4:
-        raise PanoError(path, f"depth map is {w}x{h}; expected a 2:1 equirectangular map (e.g. {2 * h}x{h})")
+    if w != 2 * h:
+        raise PanoError(path, f"depth map is {w}x{h} (width x height); expected a 2:1 equirectangular map, "
+                              f"e.g. {2 * h}x{h}")
+    if h < 4:
+        raise PanoError(path, f"depth map is {w}x{h}; too small (at least 8x4)")
     return depth
 
 
@@ -142,14 +142,6 @@ def mask_invalid(values: np.ndarray, kind: str, near: float = 0.0, far: float = 
         bad |= (v < near) | (v > far)
     v[bad] = np.nan
     return v
-
-
-def resolve_model(model: str, scene: Scene) -> Path:
-    p = Path(model).expanduser()
-    if p.is_absolute() or p.is_file():
-        return p
-    q = scene.root / p
-    return q if q.is_file() else p
 
 
 # ----------------------------------------------------------------------------- stage glue
@@ -167,7 +159,7 @@ def run(ctx: StageContext[Params]) -> DepthOutput:
         from depthnet.runner import OnnxDepthModel
 
         model = OnnxDepthModel(
-            resolve_model(p.model, scene), p.contract(), threads=p.threads, providers=p.providers
+            p.model, p.contract(), threads=p.threads, providers=p.providers
         )
 
     views = scene.manifest.train_views()

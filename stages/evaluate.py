@@ -26,7 +26,7 @@ from evaluation import metrics as M
 from evaluation.model_io import equirect_camera, load_model, render_pose
 from evaluation.visuals import depth_rgb, error_rgb
 from panogeom.images import read_rgb, write_rgb
-from pipeline.errors import PanoError
+from pipeline.errors import PanoError, load_npy
 from pipeline.stage import StageContext
 from schemas.evaluate import EvaluateOutput, ViewMetrics
 from schemas.scene import Scene, View
@@ -124,7 +124,10 @@ def load_gt_depth(path: Path, size: tuple[int, int]) -> np.ndarray:
     """Ground-truth distance along the ray (.npy metres, or .png uint16 mm) at (H, W); nearest
     resampling so depth edges are not blended into values no surface has."""
     if path.suffix == ".npy":
-        d = np.load(path).astype(np.float32)
+        d = load_npy(path)
+        if not np.issubdtype(d.dtype, np.number):
+            raise PanoError(path, f"ground-truth depth must be numeric, got {d.dtype}")
+        d = d.astype(np.float32)
     else:
         raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if raw is None:

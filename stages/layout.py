@@ -59,7 +59,8 @@ class Params(BaseModel):
         default=0.05, gt=0, lt=1, description="Corner NMS window, a fraction of the width x2."
     )
     peak_min: float = Field(default=0.05, ge=0, lt=1, description="Minimum corner probability.")
-    splits: Literal["all", "train"] = Field(default="all", description="Which views get a layout.")
+    splits: Literal["all", "train"] = Field(
+        default="train", description="Which views get a layout: train (all the pipeline uses) or all.")
 
 
 def _has_source(scene: Scene, view: View) -> bool:
@@ -69,23 +70,13 @@ def _has_source(scene: Scene, view: View) -> bool:
 def skip_reason(scene: Scene, params: Params) -> str | None:
     if params.model is not None:
         return None
-    if any(_has_source(scene, v) for v in _selected(scene, params)):
+    if any(_has_source(scene, v) for v in selected_views(scene, params)):
         return None
     return "no layout source: no layout/ files and no `layout.model` configured"
 
 
-def _selected(scene: Scene, params: Params) -> list[View]:
+def selected_views(scene: Scene, params: Params) -> list[View]:
     return [v for v in scene.views if params.splits == "all" or v.split == "train"]
-
-
-def resolve_model_path(model: Path, scene: Scene) -> Path:
-    """The model as given, else relative to the scene folder; PanoError if neither exists."""
-    model = Path(model).expanduser()
-    if model.is_file():
-        return model
-    if not model.is_absolute() and (scene.root / model).is_file():
-        return scene.root / model
-    raise PanoError(model, "layout model file does not exist (layout.model)")
 
 
 def _image_size(path: Path) -> tuple[int, int]:
@@ -147,10 +138,10 @@ def run(ctx: StageContext[Params]) -> LayoutOutput:
     if params.model is not None:
         from layoutnet.inference import LayoutModel
 
-        model_path = resolve_model_path(params.model, scene)
+        model_path = params.model  # the engine resolved it (pipeline.engine.Engine.params_for)
         model = LayoutModel(model_path, providers=params.providers, threads=params.threads)
 
-    views = _selected(scene, params)
+    views = selected_views(scene, params)
     assumed: list[str] = []
     out: list[ViewLayout] = []
     for view in ctx.track(views, "layout", total=len(views)):

@@ -2,8 +2,8 @@
 
 Glue only: resolve the preset and the initialisation, load the training
 images, run gaussians.trainer.Trainer with a rich progress bar, checkpoints
-(every `checkpoint_every` iterations and on Ctrl-C) and --resume, and export
-the standard 3DGS PLY. The math lives in gaussians/. See docs/training.md.
+(every `checkpoint_every` iterations and on Ctrl-C or SIGTERM) and --resume, and
+export the standard 3DGS PLY. The math lives in gaussians/. See docs/training.md.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field
+from rich.markup import escape
 
 from gaussians.init import from_cloud, random_points
 from gaussians.model import Gaussians
@@ -97,7 +98,7 @@ class Params(BaseModel):
     init_opacity: float = Field(default=0.1, gt=0, lt=1)
     layout_flatten: float = Field(default=0.1, gt=0, le=1, description="Thickness / width of layout Gaussians.")
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    seed: int = Field(default=0, ge=0)
+    seed: int = Field(default=0, ge=0, le=2**32 - 1)
     backend: Literal["cpp", "torch"] | None = Field(default=None, description="splatting backend; None = its default.")
     threads: int | None = Field(default=None, ge=1, description="torch threads (None = leave as is).")
     log_every: int = Field(default=10, ge=1)
@@ -285,17 +286,21 @@ def load_images(scene: Scene, views: list[View], height: int) -> dict[str, np.nd
 
 
 class _DeferredInterrupt:
-    """Ctrl-C between iterations: the first one sets a flag the loop checks (so the
-    checkpoint is written at a consistent state), a second one interrupts at once."""
+    """Ctrl-C or SIGTERM (a scheduler or `kill` stopping the job) between iterations: the first
+    one sets a flag the loop checks (so the checkpoint is written at a consistent state), a
+    second one interrupts at once. The previous handlers come back on exit."""
+
+    SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM") if hasattr(signal, name))
 
     def __init__(self):
         self.requested = False
-        self._old = None
+        self._old: dict[int, object] = {}
 
     def __enter__(self):
-        if threading.current_thread() is threading.main_thread():
-            self._old = signal.getsignal(signal.SIGINT)
-            signal.signal(signal.SIGINT, self._handler)
+        if threading.current_thread() is threading.main_thread():  # signal.signal works only there
+            for sig in self.SIGNALS:
+                self._old[sig] = signal.getsignal(sig)
+                signal.signal(sig, self._handler)
         return self
 
     def _handler(self, signum, frame):
@@ -304,9 +309,18 @@ class _DeferredInterrupt:
         self.requested = True
 
     def __exit__(self, *exc):
-        if self._old is not None:
-            signal.signal(signal.SIGINT, self._old)
+        for sig, old in self._old.items():
+            # None: a handler not installed from Python, which cannot be put back; SIG_DFL is what it was
+            signal.signal(sig, old if old is not None else signal.SIG_DFL)
+        self._old.clear()
         return False
+
+
+def _one_line(e: BaseException, limit: int = 200) -> str:
+    """An exception as one short line for a warning."""
+    lines = str(e).strip().splitlines()
+    text = lines[0] if lines else type(e).__name__
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def run(ctx: StageContext) -> TrainOutput:
@@ -338,9 +352,11 @@ def run(ctx: StageContext) -> TrainOutput:
             try:
                 trainer.load_checkpoint(ckpt)
                 resumed_from = trainer.iteration
-                console.print(f"resuming training from iteration {resumed_from} ({ckpt})")
-            except (ValueError, KeyError, RuntimeError) as e:
-                ctx.warn(f"--resume: checkpoint {ckpt} not usable ({e}); training from the start")
+                console.print(f"resuming training from iteration {resumed_from} ({escape(str(ckpt))})")
+            except Exception as e:  # noqa: BLE001 (any unusable checkpoint: warn and start over, never fail)
+                ctx.warn(f"--resume: checkpoint {ckpt} not usable ({_one_line(e)}); training from the start")
+                # a fresh trainer (and log): nothing of the failed load survives
+                log_path.unlink(missing_ok=True)
                 trainer = Trainer(g, train_views, cfg, log_path=log_path)
                 trainer.extra_fingerprint = init_fingerprint(g, train_views)
 
@@ -362,11 +378,17 @@ def run(ctx: StageContext) -> TrainOutput:
             progress.update(task, completed=tr.iteration, loss=f"{tr.ema.loss:.4f}", psnr=f"{tr.ema.psnr:.2f}",
                             count=len(tr.g), rate=f"{rate:.1f}")
             if stop.requested:
-                console.print(f"interrupted: checkpoint at iteration {tr.iteration} -> {ckpt}; "
+                console.print(f"interrupted: checkpoint at iteration {tr.iteration} -> {escape(str(ckpt))}; "
                               "rerun with --resume to continue")
                 raise KeyboardInterrupt
 
-        trainer.train(on_step=on_step, checkpoint_path=ckpt)
+        try:
+            trainer.train(on_step=on_step, checkpoint_path=ckpt)
+        except OSError as e:
+            if ckpt is None or e.filename != str(ckpt):
+                raise
+            # the trainer's checkpoint (full disk, lost permission): one line naming the file
+            raise PanoError(ckpt, e.strerror or _one_line(e)) from e
 
     final = trainer.final_gaussians()
     save_ply(ctx.out_dir / "point_cloud.ply", final)

@@ -62,8 +62,11 @@ def write_train_artifact(run_dir: Path, g, resolution=(32, 64), log_records=None
     from schemas.artifact import Artifact, ArtifactMeta
     from schemas.train import TrainOutput
 
+    from pipeline.paths import RUN_MARKER
+
     d = run_dir / "train"
     d.mkdir(parents=True, exist_ok=True)
+    (run_dir / RUN_MARKER).write_text("{}\n")  # a run folder as the engine makes it
     save_ply(d / "point_cloud.ply", g)
     if log_records is None:
         log_records = [

@@ -4,6 +4,7 @@ the stage's metric room must be the geometry the JSON implies at 1.6 m camera he
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -35,12 +36,14 @@ def _horizonnet_room(data: dict, camera_height: float = 1.6) -> tuple[np.ndarray
 def demo_scene(tmp_path) -> Path:
     root = tmp_path / "demo"
     root.mkdir()
+    for name in ("demo_aligned_rgb.png", "demo_aligned_rgb.json"):  # a scene names files inside itself
+        shutil.copy(DEMO / name, root / name)
     view = {
         "name": "demo",
-        "image": str(DEMO / "demo_aligned_rgb.png"),
+        "image": "demo_aligned_rgb.png",
         "pose": np.eye(4).tolist(),
         "camera_height": 1.6,
-        "layout": str(DEMO / "demo_aligned_rgb.json"),
+        "layout": "demo_aligned_rgb.json",
     }
     (root / "scene.json").write_text(json.dumps({"name": "demo", "views": [view]}))
     return root

@@ -102,7 +102,7 @@ def test_small_model_exports_and_runs_end_to_end(tmp_path, small_onnx):
     assert diff < 1e-4
     root = _scene(tmp_path / "scene")
     for tta in (False, True):
-        out, warnings = run_layout(root, tmp_path / f"out{tta}", model=path, tta=tta)
+        out, warnings = run_layout(root, tmp_path / f"out{tta}", model=path, tta=tta, splits="all")
         assert out.model == str(path)
         assert [v.view for v in out.views] == ["v0", "v1"] and [v.split for v in out.views] == [
             "train",

@@ -1,0 +1,283 @@
+"""Processes sharing the compiled-kernel cache ($PANO_PIPE_CACHE): builds at the same
+time, a builder killed mid-compile, the build lock. See splatting/raster_cpp.py and
+docs/splatting.md, "Build cache and concurrent processes".
+
+Two fresh compiles in all (about 60-90 s each on 2 cores): one shared by the three
+concurrent processes, one after a killed builder. The other tests need no compiler.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from splatting import raster_cpp
+
+BUILD_TIMEOUT_S = 900  # a compile is ~1-1.5 min alone on 2 cores; generous for a loaded machine
+
+# Waits for a "go" file (so the processes call load() together), builds or loads the
+# kernel, renders a small float64 scene with both backends and prints one JSON line.
+CHILD = textwrap.dedent(
+    r"""
+    import json, os, sys, time
+    from pathlib import Path
+    import torch
+    import splatting
+    from splatting import raster_cpp
+
+    go = os.environ.get("GO_FILE")
+    if go:
+        Path(os.environ["READY_FILE"]).touch()
+        t_end = time.time() + 300
+        while not os.path.exists(go) and time.time() < t_end:
+            time.sleep(0.01)
+    t0 = time.time()
+    mod = raster_cpp.load()
+    t_load = time.time() - t0
+    g = torch.Generator().manual_seed(3)
+    n = 30
+    means = torch.randn(n, 3, generator=g, dtype=torch.float64) * 2
+    quats = torch.randn(n, 4, generator=g, dtype=torch.float64)
+    scales = torch.rand(n, 3, generator=g, dtype=torch.float64) * 0.3 + 0.05
+    opac = torch.rand(n, generator=g, dtype=torch.float64) * 0.9 + 0.05
+    cols = torch.rand(n, 3, generator=g, dtype=torch.float64)
+    cam = splatting.EquirectCamera(16, 32)
+    vm = torch.eye(4, dtype=torch.float64)
+    a = splatting.render(means, quats, scales, opac, cols, vm, cam, backend="cpp")
+    b = splatting.render(means, quats, scales, opac, cols, vm, cam, backend="torch")
+    print(json.dumps({
+        "backend": a.backend,
+        "module": None if mod is None else getattr(mod, "__name__", None),
+        "image_diff": float((a.image - b.image).abs().max()),
+        "alpha_diff": float((a.alpha - b.alpha).abs().max()),
+        "alpha_max": float(a.alpha.max()),
+        "image_sum": float(a.image.sum()),
+        "load_s": t_load,
+    }))
+    """
+)
+
+
+def _env(cache: Path, **extra) -> dict:
+    env = dict(os.environ)
+    env.pop("GO_FILE", None)
+    env.update(PANO_PIPE_CACHE=str(cache), OMP_NUM_THREADS="1", PYTHONWARNINGS="default", **extra)
+    return env
+
+
+def _start(cache: Path, tag: str, **extra) -> subprocess.Popen:
+    log = cache.parent / f"{tag}.log"
+    return subprocess.Popen(
+        [sys.executable, "-c", CHILD],
+        env=_env(cache, **extra),
+        cwd=cache.parent,
+        stdout=subprocess.PIPE,
+        stderr=open(log, "w"),  # noqa: SIM115 - closed with the process
+        text=True,
+        start_new_session=True,  # its own process group: a kill reaches ninja and the compiler too
+    )
+
+
+def _finish(p: subprocess.Popen, tag: str, cache: Path, deadline: float) -> tuple[dict, str]:
+    try:
+        out, _ = p.communicate(timeout=max(1.0, deadline - time.monotonic()))
+    except subprocess.TimeoutExpired:
+        os.killpg(p.pid, signal.SIGKILL)
+        p.communicate()
+        pytest.fail(f"{tag} did not finish: {(cache.parent / f'{tag}.log').read_text()[-3000:]}")
+    err = (cache.parent / f"{tag}.log").read_text()
+    assert p.returncode == 0, f"{tag} exit {p.returncode}:\n{err[-3000:]}"
+    return json.loads(out.strip().splitlines()[-1]), err
+
+
+def _check_render(res: dict, err: str) -> None:
+    assert res["backend"] == "cpp", err[-3000:]
+    assert res["alpha_max"] > 0.05  # the scene is actually visible
+    assert res["image_diff"] < 1e-9 and res["alpha_diff"] < 1e-9, res
+
+
+def _check_published(cache: Path) -> Path:
+    """Exactly one published build folder holding the library, and no leftovers."""
+    entries = sorted(p.name for p in cache.iterdir())
+    published = [cache / n for n in entries if n.startswith("splatting-") and "." not in n]
+    assert len(published) == 1, entries
+    leftovers = [n for n in entries if ".build-" in n or ".trash-" in n]
+    assert leftovers == [], entries
+    bdir = published[0]
+    lib = bdir / (raster_cpp.module_name(bdir) + ".so")
+    assert lib.is_file() and lib.stat().st_size > 10_000, sorted(os.listdir(bdir))
+    assert not (bdir / "lock").exists()  # torch's baton never lives in a published folder
+    return bdir
+
+
+@pytest.fixture(scope="module")
+def concurrent_build(tmp_path_factory):
+    """Three processes load() together into one fresh, empty cache (one compile)."""
+    base = tmp_path_factory.mktemp("concurrent")
+    cache = base / "cache"
+    go = base / "go"
+    t0 = time.monotonic()
+    procs = [_start(cache, f"p{i}", GO_FILE=str(go), READY_FILE=str(base / f"ready{i}")) for i in range(3)]
+    t_ready = time.monotonic() + 300
+    while not all((base / f"ready{i}").exists() for i in range(3)) and time.monotonic() < t_ready:
+        if any(p.poll() is not None for p in procs):
+            break
+        time.sleep(0.05)
+    go.touch()
+    deadline = time.monotonic() + BUILD_TIMEOUT_S
+    results = [_finish(p, f"p{i}", cache, deadline) for i, p in enumerate(procs)]
+    return cache, results, time.monotonic() - t0
+
+
+def test_concurrent_processes_build_once_and_all_render(concurrent_build):
+    cache, results, _ = concurrent_build
+    for res, err in results:
+        _check_render(res, err)
+    assert len({res["module"] for res, _ in results}) == 1
+    assert len({res["image_sum"] for res, _ in results}) == 1  # the same library everywhere
+    compiled = [err for _, err in results if "compiling the C++ CPU kernel" in err]
+    assert len(compiled) == 1, [err[-500:] for _, err in results]  # one builder
+    assert any("waiting for another process" in err for _, err in results)  # they did overlap
+    _check_published(cache)
+
+
+def test_a_published_build_loads_without_the_lock(concurrent_build):
+    """Once published, a new process neither compiles nor waits, even while the lock is held."""
+    cache, _, _ = concurrent_build
+    bdir = _check_published(cache)
+    fd = os.open(cache / f"{bdir.name}.lock", os.O_RDWR)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)  # as if a builder of this key were still at work
+        p = _start(cache, "after")
+        res, err = _finish(p, "after", cache, time.monotonic() + 300)
+    finally:
+        os.close(fd)
+    _check_render(res, err)
+    assert "compiling" not in err and "waiting" not in err, err
+
+
+def test_a_killed_builder_leaves_nothing_that_blocks_the_next_build(tmp_path):
+    """SIGKILL a builder mid-compile (its flock, torch's 'lock' baton and a half-built folder
+    stay behind), add what the old build code left after a kill (a baton in the build folder
+    itself, a truncated library in a build folder): the next process builds and renders."""
+    cache = tmp_path / "cache"
+    victim = _start(cache, "victim")
+    t_end = time.monotonic() + 300
+    building = []
+    while time.monotonic() < t_end and victim.poll() is None:
+        building = [b for b in cache.glob("splatting-*.build-*") if (b / "build.ninja").exists()]
+        if building:
+            break
+        time.sleep(0.05)
+    assert building, (tmp_path / "victim.log").read_text()
+    time.sleep(1.0)  # ninja and the compiler are running
+    os.killpg(victim.pid, signal.SIGKILL)
+    victim.communicate()
+    assert victim.returncode == -signal.SIGKILL
+    stale = building[0]
+    assert (stale / "lock").exists()  # torch's FileBaton: it would block forever where it is
+    key = stale.name.split(".build-")[0]
+    assert (cache / f"{key}.lock").exists()
+    assert not (cache / key).exists()
+    # the old code's leftovers: the build folder itself holding a stale baton and no library,
+    # and a half-written library in another abandoned build folder
+    (cache / key).mkdir()
+    (cache / key / "lock").touch()
+    half = cache / f"{key}.build-old"
+    half.mkdir()
+    (half / "lock").touch()
+    (half / (raster_cpp.module_name(cache / key) + ".so")).write_bytes(b"\x7fELF" + b"\0" * 100)
+
+    t0 = time.monotonic()
+    nxt = _start(cache, "next")
+    res, err = _finish(nxt, "next", cache, time.monotonic() + BUILD_TIMEOUT_S)
+    _check_render(res, err)
+    assert "compiling the C++ CPU kernel" in err
+    assert _check_published(cache).name == key
+    assert time.monotonic() - t0 < BUILD_TIMEOUT_S
+
+
+# -- the lock and the key, without a compiler ------------------------------------------------
+
+HOLD = textwrap.dedent(
+    r"""
+    import sys, time
+    from pathlib import Path
+    from splatting import raster_cpp
+    with raster_cpp.build_lock(Path(sys.argv[1])):
+        Path(sys.argv[2]).touch()
+        time.sleep(600)
+    """
+)
+
+
+def _hold_lock(lock: Path, flag: Path) -> subprocess.Popen:
+    p = subprocess.Popen([sys.executable, "-c", HOLD, str(lock), str(flag)], start_new_session=True)
+    t_end = time.monotonic() + 120
+    while not flag.exists() and time.monotonic() < t_end and p.poll() is None:
+        time.sleep(0.02)
+    assert flag.exists()
+    return p
+
+
+def test_build_lock_is_freed_when_its_holder_is_killed(tmp_path):
+    lock = tmp_path / "k.lock"
+    p = _hold_lock(lock, tmp_path / "held")
+    try:
+        with pytest.raises(TimeoutError, match="k.lock"):
+            with raster_cpp.build_lock(lock, wait_s=0.5):
+                pass
+        assert str(p.pid) in lock.read_text()  # the message names the holder
+    finally:
+        os.killpg(p.pid, signal.SIGKILL)
+        p.wait()
+    assert lock.exists()  # the file stays, the lock does not
+    t0 = time.monotonic()
+    with raster_cpp.build_lock(lock, wait_s=30):
+        pass
+    assert time.monotonic() - t0 < 5  # loose: only "did not wait for the timeout"
+
+
+def test_lock_timeout_falls_back_to_torch_with_a_warning(tmp_path, monkeypatch):
+    """A builder that never finishes costs a wait of $PANO_PIPE_BUILD_WAIT, not a hang."""
+    import splatting
+    from splat_helpers import eye, random_scene
+
+    monkeypatch.setenv("PANO_PIPE_CACHE", str(tmp_path))
+    monkeypatch.setenv("PANO_PIPE_BUILD_WAIT", "0.5")
+    monkeypatch.setattr(raster_cpp, "_module", None)
+    monkeypatch.setattr(raster_cpp, "_failed", False)
+    bdir = raster_cpp.build_dir()
+    p = _hold_lock(tmp_path / f"{bdir.name}.lock", tmp_path / "held")
+    try:
+        with pytest.warns(RuntimeWarning, match="TimeoutError.*falling back"):
+            out = splatting.render(*random_scene(3), eye(), splatting.EquirectCamera(8, 16))
+    finally:
+        os.killpg(p.pid, signal.SIGKILL)
+        p.wait()
+    assert out.backend == "torch"
+    assert not bdir.exists()
+
+
+def test_build_key_separates_toolchains_and_installs(monkeypatch, tmp_path):
+    """Two checkouts (each its own venv) or two compilers never share, hence never rewrite, a build."""
+    import torch
+
+    monkeypatch.setenv("PANO_PIPE_CACHE", str(tmp_path))
+    base = raster_cpp.build_dir()
+    assert base.parent == tmp_path and base.name.startswith("splatting-")
+    assert raster_cpp.build_dir() == base  # stable
+    monkeypatch.setenv("CXX", "g++-does-not-exist")
+    assert raster_cpp.build_dir() != base
+    monkeypatch.delenv("CXX")
+    monkeypatch.setattr(torch, "__file__", "/elsewhere/venv/site-packages/torch/__init__.py")
+    assert raster_cpp.build_dir() != base
