@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import PanoError
+from pipeline.paths import RUN_MARKER
 
 # Paper's ablation on one Matterport3D scene, 4 views (DESIGN.md), for context in the table.
 PAPER_PSNR = {"3D-GS*": 13.64, "+ layout init": 15.98, "+ 360 splatting": 16.66, "+ layout reg": 17.72}
@@ -106,6 +107,8 @@ def resolution_value(height: int, field_info) -> object:
 def prepare_variant_dir(base_dir: Path, variant_dir: Path, stages: list[str]) -> None:
     """Copy the shared upstream stage folders into a variant folder, replacing stale copies."""
     variant_dir.mkdir(parents=True, exist_ok=True)
+    if (base_dir / RUN_MARKER).is_file():  # a run folder of the same scene, made by pano-pipe
+        shutil.copyfile(base_dir / RUN_MARKER, variant_dir / RUN_MARKER)
     for s in stages:
         src = base_dir / s
         if not (src / "artifact.json").is_file():
@@ -267,11 +270,12 @@ def run_ablation(scene, base_dir: Path, base_config: dict, seeds: int = 1, itera
         raise PanoError("--seeds", "must be at least 1")
     variants = VARIANTS if variants is None else variants
     out_dir = Path(out_dir) if out_dir is not None else base_dir / "ablate"
-    out_dir.mkdir(parents=True, exist_ok=True)
     reg = build_registry()
     fields = train_param_fields()
-    # The shared upstream stages, once, in the main run folder (cached if already there).
+    # The shared upstream stages, once, in the main run folder (cached if already there);
+    # first, so that a new base folder is made (and marked) as a run folder.
     Engine(scene, base_dir, reg, base_config, config_source="config").run(until="align")
+    out_dir.mkdir(parents=True, exist_ok=True)
 
     rows, warnings = [], []
     for key, label, settings in variants:
@@ -446,7 +450,6 @@ def run_sweep(scene, base_dir: Path, base_config: dict, iterations: list[int], h
     from pipeline.registry import build_registry
 
     out_dir = Path(out_dir) if out_dir is not None else base_dir / "sweep"
-    out_dir.mkdir(parents=True, exist_ok=True)
     reg = build_registry()
     fields = train_param_fields()
     res_name = next((n for n in _PARAM_ALIASES["resolution"] if n in fields), None)
@@ -454,6 +457,7 @@ def run_sweep(scene, base_dir: Path, base_config: dict, iterations: list[int], h
         raise PanoError("sweep", f"the train stage has no resolution parameter (looked for {_PARAM_ALIASES['resolution']})")
     eh = int(eval_height or max(heights))
     Engine(scene, base_dir, reg, base_config, config_source="config").run(until="align")
+    out_dir.mkdir(parents=True, exist_ok=True)
     points = []
     for it, h, cap in product(iterations, heights, caps):
         p = SweepPoint(it, h, cap)

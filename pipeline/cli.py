@@ -316,12 +316,23 @@ def _click_exceptions(name: str) -> tuple[type, ...]:
     return tuple(found)
 
 
+def _quiet_opencv() -> None:
+    """OpenCV logs its own decoder errors to stderr; pano-pipe reports an unreadable file itself,
+    in one line, so OpenCV's log is switched off (the environment variable before cv2 is imported,
+    the call if it already is)."""
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "OFF")
+    if "cv2" in sys.modules:
+        cv2 = sys.modules["cv2"]
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+
+
 def main() -> None:
     """Console entry point. Exit codes: 0 success, 1 internal error, 2 bad input (one line naming
     the file and the problem), 130 interrupted (Ctrl-C or SIGTERM). --debug shows tracebacks."""
     import signal
     import threading
 
+    _quiet_opencv()
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _on_sigterm)
     try:

@@ -22,7 +22,7 @@ from rich.markup import escape
 
 from pipeline.console import console, track
 from pipeline.errors import PanoError, describe_validation_error
-from pipeline.fsutil import atomic_folder, remove_stale_temporaries, run_folder_lock, sha256_file, sha256_json
+from pipeline.fsutil import append_line, atomic_folder, remove_stale_temporaries, run_folder_lock, sha256_file, sha256_json
 from pipeline.paths import check_run_folder, mark_run_folder
 from pipeline.stage import Loaded, StageContext, StageSpec
 from schemas.artifact import Artifact, ArtifactMeta
@@ -373,5 +373,4 @@ class Engine:
     def _log(self, stage: str, event: str, **fields) -> None:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         record = {"time": datetime.now(timezone.utc).isoformat(), "stage": stage, "event": event, **fields}
-        with open(self.out_dir / RUN_LOG, "a") as f:
-            f.write(json.dumps(record) + "\n")
+        append_line(self.out_dir / RUN_LOG, json.dumps(record))

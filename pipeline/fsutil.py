@@ -59,6 +59,27 @@ def sha256_json(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
 
+def open_no_follow(path: Path, flags: int) -> int:
+    """os.open that refuses a symbolic link at `path`: a run folder's own files are written in
+    place, and a planted link would carry those writes out of the folder."""
+    from pipeline.errors import PanoError
+
+    try:
+        return os.open(path, flags | os.O_NOFOLLOW, 0o644)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise PanoError(path, "is a symbolic link; pano-pipe writes its run files itself (remove the link)"
+                            ) from None
+        raise
+
+
+def append_line(path: Path, line: str) -> None:
+    """Append one line to a log file (never through a symbolic link)."""
+    fd = open_no_follow(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT)
+    with os.fdopen(fd, "a", encoding="utf-8") as f:
+        f.write(line + "\n")
+
+
 @contextlib.contextmanager
 def run_folder_lock(folder: Path) -> Iterator[None]:
     """Hold an exclusive lock on a run folder for the life of one run. A second process on the
@@ -71,7 +92,7 @@ def run_folder_lock(folder: Path) -> Iterator[None]:
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     lock_path = folder / LOCK_NAME
-    fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = open_no_follow(lock_path, os.O_RDWR | os.O_CREAT)
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)

@@ -300,7 +300,11 @@ def _frame_image(frame: dict, i: int, base: Path, transforms: Path) -> tuple[Pat
                                     "images must lie inside the folder holding transforms.json")
     src = base / rel
     try:
-        if not is_inside(src, base):
+        inside = is_inside(src, base)
+    except PanoError:  # a symlink loop: say so about the field that names it
+        raise PanoError(transforms, f"{field}: cannot open {rel[:80]!r}: a symlink loop") from None
+    try:
+        if not inside:
             raise PanoError(transforms, f"{field}: {rel!r} resolves outside the folder of transforms.json "
                                         "(a symlink?); images must lie inside it")
         if not src.exists():

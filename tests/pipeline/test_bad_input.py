@@ -12,6 +12,12 @@ import pytest
 from pipeline import cli
 
 
+@pytest.fixture(autouse=True)
+def _in_tmp(tmp_path, monkeypatch):
+    """Without --out a run writes runs/<scene>/ under the working folder: keep that in tmp."""
+    monkeypatch.chdir(tmp_path)
+
+
 def run_cli(args: list[str], capsys) -> tuple[int, str]:
     old = sys.argv
     sys.argv = ["pano-pipe", *args]

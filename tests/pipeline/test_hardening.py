@@ -466,3 +466,37 @@ def test_a_changed_test_image_does_not_retrain(finished, capsys):
         k: ("up-to-date", "") for k in ("layout", "depth", "union", "sampling", "align", "train")
     }
     assert st["evaluate"][0] == "stale" and "scene inputs changed" in st["evaluate"][1]
+
+
+def test_naming_a_file_reruns_only_the_stages_that_read_it(finished, capsys):
+    """The manifest enters a stage's key only through the fields the stage reads: naming a view's
+    depth file (or changing a ground-truth path) leaves layout cached."""
+    scene = finished / "S"
+    depth_dir = scene / "supplied_depth"
+    depth_dir.mkdir()
+    np.save(depth_dir / "d.npy", np.full((16, 32), 2.0, np.float32))
+
+    def name_depth(data):
+        data["views"][0]["depth"] = "supplied_depth/d.npy"
+
+    edit(scene, name_depth)
+    st = states(finished, capsys)
+    assert st["layout"] == ("up-to-date", "")
+    assert st["depth"][0] == "stale" and "scene inputs changed" in st["depth"][1]
+
+
+def test_run_files_are_never_written_through_a_symlink(finished, capsys):
+    """A planted link in a run folder (.lock, run_log.jsonl) is refused, not followed."""
+    secret = finished / "secret.txt"
+    secret.write_text("keep me")
+    for name in (".lock", "run_log.jsonl"):
+        link = finished / "R" / name
+        original = link.read_bytes() if link.is_file() else None
+        link.unlink(missing_ok=True)
+        link.symlink_to(secret)
+        code, err = run_cli(["run", "all", finished / "S", "--out", finished / "R", *FAST], capsys)
+        assert_one_line(code, err, name, "symbolic link")
+        assert secret.read_text() == "keep me"
+        link.unlink()
+        if original is not None:
+            link.write_bytes(original)

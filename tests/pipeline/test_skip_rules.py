@@ -68,8 +68,8 @@ def run_ok(args: list[str]) -> None:
 
 def test_status_table_says_why(scenes, tmp_path, capsys):
     run_ok(["status", str(scenes["bare"]), "--out", str(tmp_path / "run")])
-    err = capsys.readouterr().err
-    assert "skipped" in err and "no layout source" in err and "missing" in err
+    out = capsys.readouterr().out  # progress and tables go to stdout; stderr holds errors only
+    assert "skipped" in out and "no layout source" in out and "missing" in out
 
 
 def test_schema_command_writes_every_schema(tmp_path):
