@@ -13,7 +13,6 @@ user text onto paths itself.
 from __future__ import annotations
 
 import json
-import os
 import unicodedata
 from pathlib import Path, PurePosixPath, PureWindowsPath
 
@@ -160,22 +159,3 @@ def mark_run_folder(out_dir: Path, scene_root: Path) -> None:
 def default_run_folder(scene_name: str) -> Path:
     """runs/<scene-name>/ under the working folder (the name is a checked stem)."""
     return Path("runs") / safe_stem(scene_name)
-
-
-def checked_output(out_dir: Path, name: str) -> Path:
-    """`out_dir / name` for a file a stage writes, refusing a name that would land elsewhere."""
-    problem = relative_problem(name)
-    path = Path(out_dir) / name
-    if problem or not is_inside(path, out_dir):
-        raise PanoError(path, f"output name {name!r} would be written outside {out_dir}")
-    return path
-
-
-def human_path(path: Path | str) -> str:
-    """A path for messages: relative to the working folder where that is shorter."""
-    p = Path(path)
-    try:
-        rel = os.path.relpath(p)
-        return rel if len(rel) < len(str(p)) else str(p)
-    except ValueError:
-        return str(p)

@@ -4,10 +4,8 @@ from __future__ import annotations
 
 import io
 import json
-import shutil
 import struct
 import zlib
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -18,7 +16,6 @@ from fuzz_helpers import (
     FAST_STAGES,
     NUMBERS,
     SCENE_VIEWS,
-    TRAIN_VIEWS,
     fuzz_settings,
     json_dumps_deep,
     deep,
