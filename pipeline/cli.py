@@ -131,15 +131,32 @@ def print_status_table(engine) -> None:
 @app.command()
 def run(
     stage: Annotated[str, typer.Argument(help="A stage name, or 'all'.")],
-    scene: SceneArg,
-    out: OutOpt = None,
+    scenes: Annotated[list[Path], typer.Argument(
+        help="Scene folder(s) holding scene.json, or folders of scene folders (a batch).", show_default=False)],
+    out: Annotated[Optional[Path], typer.Option(
+        "--out", help="Run folder (default: runs/<scene-name>/); for a batch the root of one per scene "
+                      "(default: runs/).")] = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
     force: Annotated[bool, typer.Option("--force", help="Rerun every selected stage, cached or not.")] = False,
     until: Annotated[Optional[str], typer.Option("--until", help="Stop after this stage.")] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue training from its last checkpoint.")] = False,
+    executor: Annotated[str, typer.Option(
+        "--executor", help="Batch executor: local (this process) or ray (each stage of each scene a Ray task).")
+    ] = "local",
+    address: Annotated[Optional[str], typer.Option(
+        "--address", help="Ray cluster address (default: start a local Ray instance).")] = None,
+    retries: Annotated[int, typer.Option(
+        "--retries", min=0, help="Ray: times a stage whose worker died is retried.")] = 2,
 ) -> None:
-    """Run the pipeline (`all`) or one stage (rerun, with anything stale upstream)."""
+    """Run the pipeline (`all`) or one stage (rerun, with anything stale upstream), on one scene
+    or a batch of scenes (exit code 1 when any scene failed)."""
+    from batch.scenes import expand_scenes, is_batch
+
+    if is_batch(scenes) or executor != "local" or address is not None:
+        return _run_batch(stage, expand_scenes(scenes), out, config, set_, force, until, resume, executor,
+                          address, retries)
+    scene = scenes[0]
     engine = make_engine(scene, out, config, set_)
     target = None if stage == "all" else stage
     if target is not None and target not in engine.registry:
@@ -157,6 +174,30 @@ def run(
         mean = data.get("mean", {})
         shown = ", ".join(f"{k} {v:.4g}" for k, v in mean.items() if isinstance(v, (int, float)))
         console.print(f"[bold]test metrics:[/] {shown}")
+
+
+def _run_batch(stage: str, scenes: list[Path], out: Path | None, config: Path | None, set_: list[str] | None,
+               force: bool, until: str | None, resume: bool, executor_name: str, address: str | None,
+               retries: int) -> int:
+    from batch.executors import make_executor
+    from batch.progress import console as batch_console
+    from batch.progress import summary_table
+    from batch.scheduler import run_batch
+
+    cfg, source = load_config(config, set_)
+    target = None if stage == "all" else stage
+    executor = make_executor(executor_name, address=address, retries=retries)
+    try:
+        results = run_batch(scenes, out if out is not None else Path("runs"), cfg, source, executor,
+                            target=target, until=until, force=force, resume=resume)
+    finally:
+        executor.close()
+    batch_console.print(summary_table([r.row() for r in results]))
+    failed = [r for r in results if r.failed]
+    batch_console.print(f"{len(results) - len(failed)} of {len(results)} scenes succeeded", soft_wrap=True)
+    if failed:
+        raise typer.Exit(1)
+    return 0
 
 
 @app.command()

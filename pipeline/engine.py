@@ -10,6 +10,8 @@ from __future__ import annotations
 import errno
 import graphlib
 import json
+import os
+import socket
 import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -142,6 +144,18 @@ def stale_reason(meta: ArtifactMeta, plan: StagePlan, params_json: dict, scene_h
     if meta.scene_hash != scene_hash:
         return "scene inputs changed"
     return "model files changed"
+
+
+def select_stages(registry: dict[str, StageSpec], target: str | None = None, until: str | None = None) -> list[str]:
+    """Stages a run touches: all, or the target/until stage and its ancestors, in DAG order."""
+    order = topological_order(registry)
+    stop = target or until
+    if stop is None:
+        return order
+    if stop not in registry:
+        raise PanoError(None, f"unknown stage {stop!r}; stages are {', '.join(order)}")
+    wanted = ancestors(registry, stop) | {stop}
+    return [n for n in order if n in wanted]
 
 
 #: The manifest field of a view that names its file of each scene input kind.
@@ -281,13 +295,7 @@ class Engine:
     # -- running ----------------------------------------------------------
     def select(self, target: str | None = None, until: str | None = None) -> list[str]:
         """Stages a run touches: all, or the target/until stage and its ancestors, in order."""
-        stop = target or until
-        if stop is None:
-            return list(self.order)
-        if stop not in self.registry:
-            raise PanoError(None, f"unknown stage {stop!r}; stages are {', '.join(self.order)}")
-        wanted = ancestors(self.registry, stop) | {stop}
-        return [n for n in self.order if n in wanted]
+        return select_stages(self.registry, target, until)
 
     def run(
         self,
@@ -298,25 +306,37 @@ class Engine:
     ) -> list[StageResult]:
         """Run the selected stages. `target` is always rerun; `force` reruns every selected stage."""
         with run_folder_lock(self.out_dir):
-            mark_run_folder(self.out_dir, self.scene.root)
-            remove_stale_temporaries(self.out_dir)
+            self.prepare_run_folder()
             return self._run_locked(target, until, force, resume)
 
     def _run_locked(self, target: str | None, until: str | None, force: bool, resume: bool) -> list[StageResult]:
         plans = self.plan()
-        results: list[StageResult] = []
-        for name in self.select(target, until):
-            p = plans[name]
-            if p.state == "skipped":
-                self._log(name, "skipped", reason=p.reason)
-                results.append(StageResult(name, "skipped", reason=p.reason))
-                continue
-            if p.state == "up-to-date" and not force and name != target:
-                self._log(name, "cached")
-                results.append(StageResult(name, "cached", p.last_duration_s or 0.0))
-                continue
-            results.append(self._run_stage(p, plans, resume=resume))
-        return results
+        return [self._step(name, plans, force or name == target, resume) for name in self.select(target, until)]
+
+    def run_one(self, name: str, force: bool = False, resume: bool = False) -> StageResult:
+        """Bring one stage up to date, its upstream stages being done already: the unit of work a
+        batch executor schedules (pipeline.batch). The caller holds the run folder's lock and has
+        prepared the folder (`prepare_run_folder`)."""
+        if name not in self.registry:
+            raise PanoError(None, f"unknown stage {name!r}; stages are {', '.join(self.order)}")
+        # a retried task (its worker killed mid-stage) finds its predecessor's temporary folder
+        remove_stale_temporaries(self.out_dir, stage=name)
+        return self._step(name, self.plan(), force, resume)
+
+    def prepare_run_folder(self) -> None:
+        """Mark the run folder as pano-pipe's and remove what killed runs left (under its lock)."""
+        mark_run_folder(self.out_dir, self.scene.root)
+        remove_stale_temporaries(self.out_dir)
+
+    def _step(self, name: str, plans: dict[str, StagePlan], force: bool, resume: bool) -> StageResult:
+        p = plans[name]
+        if p.state == "skipped":
+            self._log(name, "skipped", reason=p.reason)
+            return StageResult(name, "skipped", reason=p.reason)
+        if p.state == "up-to-date" and not force:
+            self._log(name, "cached")
+            return StageResult(name, "cached", p.last_duration_s or 0.0)
+        return self._run_stage(p, plans, resume=resume)
 
     def _run_stage(self, p: StagePlan, plans: dict[str, StagePlan], resume: bool) -> StageResult:
         spec = self.registry[p.name]
@@ -327,7 +347,7 @@ class Engine:
             else:
                 inputs[dep] = load_artifact(self.out_dir / dep, self.registry[dep].output)
         console.print(f"[bold cyan]▶ {p.name}[/] {escape(spec.description)}")
-        self._log(p.name, "start")
+        self._log(p.name, "start", host=socket.gethostname(), pid=os.getpid())  # which worker, in a batch
         t0 = time.perf_counter()
         scratch = self.out_dir / ".scratch" / p.name
         try:

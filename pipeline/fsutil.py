@@ -109,17 +109,19 @@ def run_folder_lock(folder: Path) -> Iterator[None]:
         os.close(fd)  # closing the descriptor releases the lock
 
 
-def remove_stale_temporaries(folder: Path) -> list[Path]:
+def remove_stale_temporaries(folder: Path, stage: str | None = None) -> list[Path]:
     """Delete what interrupted runs left in a run folder (call it under the folder's lock):
-    atomic_folder's `.tmp-*` / `.old-*` siblings and half-written `*.tmp` files of the scratch space."""
+    atomic_folder's `.tmp-*` / `.old-*` siblings and half-written `*.tmp` files of the scratch space;
+    with `stage`, only that stage's (others may be running beside it in a batch)."""
     folder = Path(folder)
+    prefixes = TEMP_PREFIXES if stage is None else tuple(f"{p}{stage}-" for p in TEMP_PREFIXES)
     removed = []
     for p in folder.iterdir() if folder.is_dir() else ():
-        if p.name.startswith(TEMP_PREFIXES) and p.is_dir() and not p.is_symlink():
+        if p.name.startswith(prefixes) and p.is_dir() and not p.is_symlink():
             shutil.rmtree(p, ignore_errors=True)
             removed.append(p)
-    scratch = folder / ".scratch"
-    if scratch.is_dir():
+    scratch = folder / ".scratch" if stage is None else folder / ".scratch" / stage
+    if scratch.is_dir() and not scratch.is_symlink():
         for p in scratch.rglob("*.tmp"):
             if p.is_file() and not p.is_symlink():
                 p.unlink(missing_ok=True)

@@ -17,6 +17,14 @@ def train_views(scene: Scene, params) -> list[View]:
     return scene.manifest.train_views()
 
 
+def torch_resources(params) -> dict[str, float]:
+    """A torch stage: its `threads` CPUs (1 when unset: a batch runs stages side by side), and a
+    GPU when its `device` setting names CUDA."""
+    cpus = float(getattr(params, "threads", None) or 1)
+    device = str(getattr(params, "device", None) or "cpu")
+    return {"CPU": cpus, **({"GPU": 1.0} if device.startswith("cuda") else {})}
+
+
 @cache
 def build_registry() -> dict[str, StageSpec]:
     from stages import align, depth, evaluate, layout, sampling, train, union
@@ -56,13 +64,13 @@ def build_registry() -> dict[str, StageSpec]:
             "train", train.Params, train.Output, train.run, reads_views=train_views,
             inputs={"align": False, "sampling": False, "union": False}, scene_inputs=("images",),
             code=("stages.train", "stages.cloud_io", "gaussians", "splatting"),
-            description="360° Gaussian splatting optimisation",
+            description="360° Gaussian splatting optimisation", resources=torch_resources,
         ),
         StageSpec(
             "evaluate", evaluate.Params, evaluate.Output, evaluate.run,
             inputs={"train": True, "union": False}, scene_inputs=("images", "gt"),
             code=("stages.evaluate", "evaluation", "gaussians", "splatting"),
-            description="metrics on the held-out views",
+            description="metrics on the held-out views", resources=torch_resources,
         ),
     ]
     return {s.name: s for s in specs}

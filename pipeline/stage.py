@@ -47,6 +47,8 @@ class StageSpec:
     #: their content hash is the stage's code version.
     code: tuple[str, ...] = ()
     description: str = ""
+    #: What one run of the stage occupies, for a batch executor: {"CPU": n, "GPU": g}.
+    resources: Callable[[BaseModel], dict[str, float]] = field(default=lambda params: {"CPU": 1.0})
 
     def code_version(self) -> str:
         h = hashlib.sha256()

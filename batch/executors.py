@@ -1,0 +1,154 @@
+"""Executors run jobs; they know nothing about stages.
+
+An executor takes `submit(key, fn, arg, resources, priority)` and hands back finished jobs
+from `wait()` as (key, result) pairs, `result` being what `fn(arg)` returned or the exception
+that stopped it for good (after the executor's retries). Ordering and dependencies are the
+scheduler's: it only submits jobs whose inputs are done.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Hashable
+from typing import Any, Protocol
+
+#: Environment variables a job reads, passed to Ray workers (a worker on another machine does
+#: not inherit the driver's environment).
+FORWARDED_ENV = ("PANO_PIPE_MAX_MEGAPIXELS", "PANO_PIPE_CACHE", "PANO_PIPE_BUILD_WAIT",
+                 "PANO_PIPE_LPIPS_WEIGHTS", "PANO_PIPE_INJECT_KILL_ONCE")
+
+
+class Executor(Protocol):
+    name: str
+
+    def submit(self, key: Hashable, fn: Callable[[Any], Any], arg: Any, resources: dict[str, float],
+               priority: tuple = ()) -> None: ...
+
+    def wait(self, timeout: float, on_start: Callable[[Hashable], None] | None = None
+             ) -> list[tuple[Hashable, Any]]:
+        """Finished jobs, waiting up to `timeout` s for one; `on_start(key)` where the executor
+        knows when a job starts (the scheduler also reads it from the run log)."""
+        ...
+
+    def cancel(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class LocalExecutor:
+    """This process, one job at a time, lowest priority first (the scheduler's order: a scene's
+    stages one after another, then the next scene). A job has all the machine's cores."""
+
+    name = "local"
+
+    def __init__(self):
+        self._queue: list[tuple[tuple, int, Hashable, Callable, Any]] = []
+        self._count = 0
+
+    def submit(self, key, fn, arg, resources, priority=()):
+        self._count += 1
+        self._queue.append((priority, self._count, key, fn, arg))
+
+    def wait(self, timeout, on_start=None):
+        if not self._queue:
+            return []
+        item = min(self._queue, key=lambda q: (q[0], q[1]))
+        self._queue.remove(item)
+        _, _, key, fn, arg = item
+        if on_start is not None:
+            on_start(key)
+        try:
+            return [(key, fn(arg))]
+        except Exception as e:  # noqa: BLE001 (the job's own failure: reported, the batch goes on)
+            return [(key, e)]
+
+    def cancel(self) -> None:
+        self._queue.clear()
+
+    def close(self) -> None:
+        pass
+
+
+class RayExecutor:
+    """Each job a Ray task. A task whose worker dies (killed, out of memory, a lost node) is
+    retried up to `retries` times by Ray; a job's own failure comes back as its result and is
+    not retried (bad input stays bad)."""
+
+    name = "ray"
+
+    def __init__(self, address: str | None = None, num_cpus: int | None = None, retries: int = 2):
+        try:
+            import ray
+        except ImportError:
+            from pipeline.errors import PanoError
+
+            raise PanoError("--executor ray", "Ray is not installed: pip install 'pano-pipe[ray]'") from None
+        self._ray = ray
+        self.retries = retries
+        env = {k: os.environ[k] for k in FORWARDED_ENV if k in os.environ}
+        #: per task only where Ray was started by someone else (a task's own runtime_env costs
+        #: it a dedicated worker)
+        self._task_env = None
+        if not ray.is_initialized():
+            kwargs: dict[str, Any] = dict(include_dashboard=False, log_to_driver=False,
+                                          runtime_env={"env_vars": env} if env else None)
+            if address:
+                kwargs["address"] = address
+            elif num_cpus:
+                kwargs["num_cpus"] = num_cpus
+            ray.init(**kwargs)
+            self._owns_ray = True
+        else:
+            self._owns_ray = False
+            self._task_env = {"env_vars": env} if env else None
+        self._tasks: dict[Any, Hashable] = {}
+        self._remote = {}
+
+    def _remote_fn(self, fn):
+        if fn not in self._remote:
+            self._remote[fn] = self._ray.remote(fn)
+        return self._remote[fn]
+
+    def submit(self, key, fn, arg, resources, priority=()):
+        opts = {"num_cpus": resources.get("CPU", 1), "num_gpus": resources.get("GPU", 0),
+                "max_retries": self.retries, "retry_exceptions": False}
+        if self._task_env:
+            opts["runtime_env"] = self._task_env
+        ref = self._remote_fn(fn).options(**opts).remote(arg)
+        self._tasks[ref] = key
+
+    def wait(self, timeout, on_start=None):
+        if not self._tasks:
+            return []
+        done, _ = self._ray.wait(list(self._tasks), num_returns=len(self._tasks), timeout=timeout)
+        out = []
+        for ref in done:
+            key = self._tasks.pop(ref)
+            try:
+                out.append((key, self._ray.get(ref)))
+            except Exception as e:  # noqa: BLE001 (a worker that kept dying, a lost object)
+                out.append((key, e))
+        return out
+
+    def cancel(self) -> None:
+        for ref in list(self._tasks):
+            try:
+                self._ray.cancel(ref, force=True)
+            except Exception:  # noqa: BLE001 (already finished)
+                pass
+        self._tasks.clear()
+
+    def close(self) -> None:
+        if self._owns_ray:
+            self._ray.shutdown()
+
+
+def make_executor(name: str, address: str | None = None, num_cpus: int | None = None,
+                  retries: int = 2) -> Executor:
+    if name == "local":
+        return LocalExecutor()
+    if name == "ray":
+        return RayExecutor(address, num_cpus, retries)
+    from pipeline.errors import PanoError
+
+    raise PanoError("--executor", f"must be local or ray, got {name!r}")
