@@ -20,6 +20,7 @@ from typing import Annotated, Optional
 
 import typer
 from rich.table import Table
+from rich.text import Text
 
 from rich.markup import escape
 
@@ -194,6 +195,8 @@ def _run_batch(stage: str, scenes: list[Path], out: Path | None, config: Path | 
         executor.close()
     batch_console.print(summary_table([r.row() for r in results]))
     failed = [r for r in results if r.failed]
+    for r in failed:  # in full: the table's column may be cut to the terminal's width
+        batch_console.print(Text.assemble((f"{r.name}: ", "red"), r.error), soft_wrap=True)
     batch_console.print(f"{len(results) - len(failed)} of {len(results)} scenes succeeded", soft_wrap=True)
     if failed:
         raise typer.Exit(1)
@@ -378,6 +381,8 @@ def main() -> None:
         signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         code = app(standalone_mode=False)
+        if code == 130:  # typer turns Ctrl-C into this return value, silently, when not standalone
+            raise KeyboardInterrupt
         # typer returns an Exit's code instead of raising it when standalone_mode is off
         if isinstance(code, int) and code != 0:
             sys.exit(code)

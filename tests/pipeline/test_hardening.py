@@ -182,8 +182,8 @@ def test_interrupts_exit_130(work, exc, monkeypatch, capsys):
         raise exc()
 
     monkeypatch.setattr(Engine, "run", interrupted)
-    code, _ = run_cli(["run", "all", work / "S", "--out", work / "R"], capsys)
-    assert code == 130
+    code, err = run_cli(["run", "all", work / "S", "--out", work / "R"], capsys)
+    assert code == 130 and err.startswith("interrupted")
 
 
 def test_internal_error_exits_1_in_one_line(work, monkeypatch, capsys):

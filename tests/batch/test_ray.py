@@ -1,0 +1,84 @@
+"""The Ray executor on a local Ray instance with 2 CPUs: the same artifacts as the local
+executor, retries of killed workers, cached reruns, failures that stay in their scene."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from batch.executors import LocalExecutor, RayExecutor
+from batch.jobs import KILL_ONCE_ENV
+from batch.scheduler import run_batch
+from tests.batch.conftest import FAST
+
+ray = pytest.importorskip("ray")
+
+
+@pytest.fixture(scope="module")
+def ray_instance():
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield
+    ray.shutdown()
+
+
+def keys_and_metrics(run_root: Path) -> dict:
+    out = {}
+    for art in sorted(run_root.glob("*/*/artifact.json")):
+        doc = json.loads(art.read_text())
+        scene, stage = art.parent.parent.name, art.parent.name
+        out[(scene, stage, "key")] = doc["meta"]["key"]
+        if stage == "evaluate":
+            out[(scene, stage, "psnr")] = round(doc["data"]["mean"]["psnr"], 6)
+            out[(scene, stage, "ssim")] = round(doc["data"]["mean"]["ssim"], 6)
+    return out
+
+
+def test_ray_gives_the_local_executors_artifacts(ray_instance, scenes, tmp_path):
+    all_scenes = sorted(scenes.iterdir())
+    local = run_batch(all_scenes, tmp_path / "local", FAST, "--set", LocalExecutor())
+    remote = run_batch(all_scenes, tmp_path / "ray", FAST, "--set", RayExecutor())
+    assert not any(r.failed for r in local + remote), [r.error for r in local + remote]
+    a, b = keys_and_metrics(tmp_path / "local"), keys_and_metrics(tmp_path / "ray")
+    assert len(a) == 4 * (7 + 2) and a == b
+    # the jobs ran in Ray workers, not in this process
+    import os
+
+    log = [json.loads(x) for x in (tmp_path / "ray" / "room0" / "run_log.jsonl").read_text().splitlines()]
+    assert {rec["pid"] for rec in log if rec["event"] == "start"} - {os.getpid()}
+    # a rerun of the finished batch runs no stage
+    again = run_batch(all_scenes, tmp_path / "ray", FAST, "--set", RayExecutor())
+    assert {o.outcome for r in again for o in r.stages.values()} == {"cached"}
+
+
+def test_a_killed_worker_is_retried_and_completes(ray_instance, scenes, tmp_path, monkeypatch):
+    marker = tmp_path / "killed-once"
+    monkeypatch.setenv(KILL_ONCE_ENV, f"train:{marker}")
+    results = run_batch([scenes / "room0", scenes / "room1"], tmp_path / "runs", FAST, "--set",
+                        RayExecutor(retries=2))
+    assert marker.is_file()  # one train job's worker was SIGKILLed ...
+    assert [r.stages["train"].outcome for r in results] == ["ran", "ran"]  # ... and its retry finished
+    assert not any(r.failed for r in results)
+    for r in results:
+        assert (r.out_dir / "evaluate" / "artifact.json").is_file()
+        assert not [p for p in r.out_dir.iterdir() if p.name.startswith((".tmp-", ".old-"))]
+
+
+def test_without_retries_a_killed_worker_fails_its_scene_alone(ray_instance, scenes, tmp_path, monkeypatch):
+    marker = tmp_path / "killed-once"
+    monkeypatch.setenv(KILL_ONCE_ENV, f"union:{marker}")
+    results = run_batch([scenes / "room0", scenes / "room1"], tmp_path / "runs", FAST, "--set",
+                        RayExecutor(retries=0))
+    failed = [r for r in results if r.failed]
+    assert len(failed) == 1 and failed[0].error.startswith("union: ")
+    assert "train" not in failed[0].stages  # blocked: needs union's layout cloud
+    ok = next(r for r in results if not r.failed)
+    assert (ok.out_dir / "evaluate" / "artifact.json").is_file()
+
+
+def test_a_bad_scene_fails_alone_on_ray(ray_instance, scenes, tmp_path):
+    (scenes / "room3" / "images" / "train_01.png").write_bytes(b"\x89PNG truncated")
+    results = run_batch(sorted(scenes.iterdir()), tmp_path / "runs", FAST, "--set", RayExecutor())
+    assert [r.failed for r in results] == [False, False, False, True]
+    assert "train_01.png" in results[3].error and results[3].exit_code == 2
