@@ -8,6 +8,7 @@ scheduler's: it only submits jobs whose inputs are done.
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Callable, Hashable
 from typing import Any, Protocol
@@ -20,6 +21,8 @@ FORWARDED_ENV = ("PANO_PIPE_MAX_MEGAPIXELS", "PANO_PIPE_CACHE", "PANO_PIPE_BUILD
 
 class Executor(Protocol):
     name: str
+    #: Whether jobs run side by side, each limited to the CPUs it asked for.
+    shares_cores: bool
 
     def submit(self, key: Hashable, fn: Callable[[Any], Any], arg: Any, resources: dict[str, float],
                priority: tuple = ()) -> None: ...
@@ -40,6 +43,7 @@ class LocalExecutor:
     stages one after another, then the next scene). A job has all the machine's cores."""
 
     name = "local"
+    shares_cores = False
 
     def __init__(self):
         self._queue: list[tuple[tuple, int, Hashable, Callable, Any]] = []
@@ -75,6 +79,7 @@ class RayExecutor:
     not retried (bad input stays bad)."""
 
     name = "ray"
+    shares_cores = True
 
     def __init__(self, address: str | None = None, num_cpus: int | None = None, retries: int = 2):
         try:
@@ -90,7 +95,8 @@ class RayExecutor:
         #: it a dedicated worker)
         self._task_env = None
         if not ray.is_initialized():
-            kwargs: dict[str, Any] = dict(include_dashboard=False, log_to_driver=False,
+            # Ray's own INFO/WARNING lines would land on stderr, which holds only errors (docs/security.md)
+            kwargs: dict[str, Any] = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR,
                                           runtime_env={"env_vars": env} if env else None)
             if address:
                 kwargs["address"] = address

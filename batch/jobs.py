@@ -30,6 +30,8 @@ class StageJob:
     config_source: str = "--set"
     force: bool = False
     resume: bool = False
+    #: CPUs the executor gave the job (torch's thread count); None: leave it as it is
+    threads: int | None = None
 
 
 @dataclass
@@ -57,6 +59,11 @@ def run_stage_job(job: StageJob) -> JobOutcome:
     where = {"host": socket.gethostname(), "pid": os.getpid()}
     _maybe_inject_kill(job.stage)
     t0 = time.perf_counter()
+    if job.threads:
+        # a pooled worker keeps the thread count of whatever it ran first; set it per job
+        import torch
+
+        torch.set_num_threads(job.threads)
     try:
         scene = load_scene(job.scene_dir)
         engine = Engine(scene, job.out_dir, build_registry(), job.config, config_source=job.config_source)

@@ -123,9 +123,9 @@ class _SceneJobs:
         spec = self.registry[name]
         return spec.resources(spec.params.model_validate(self.config.get(name, {})))
 
-    def job(self, r: SceneResult, name: str) -> StageJob:
+    def job(self, r: SceneResult, name: str, threads: int | None) -> StageJob:
         return StageJob(r.scene_dir, r.out_dir, name, self.config, self.config_source,
-                        force=self.force or name == self.target, resume=self.resume)
+                        force=self.force or name == self.target, resume=self.resume, threads=threads)
 
 
 def _schedule(results: list[SceneResult], jobs: _SceneJobs, executor: Executor, board: Board) -> None:
@@ -156,8 +156,9 @@ def _schedule(results: list[SceneResult], jobs: _SceneJobs, executor: Executor, 
                     board.set(results[i].name, name, "blocked")
                 elif all(x in DONE for x in inputs):
                     k = jobs.selected.index(name)
-                    executor.submit((i, name), run_stage_job, jobs.job(results[i], name), resources[name],
-                                    priority=(i, k))
+                    threads = max(1, int(resources[name]["CPU"])) if executor.shares_cores else None
+                    executor.submit((i, name), run_stage_job, jobs.job(results[i], name, threads),
+                                    resources[name], priority=(i, k))
                     state[(i, name)] = "queued"
                     board.set(results[i].name, name, "queued")
             if not any(s in ("queued", "running") for s in state.values()):

@@ -294,6 +294,24 @@ def bench_pipeline_command(
     bench_pipeline(scene, cfg, out_md, out_json)
 
 
+@bench_app.command("batch")
+def bench_batch_command(
+    scenes: Annotated[int, typer.Option(min=1, help="Simulated scenes in the batch.")] = 8,
+    height: Annotated[int, typer.Option(min=16, help="Panorama height of each scene.")] = 32,
+    iterations: Annotated[int, typer.Option(min=1, help="Training iterations per scene.")] = 300,
+    executors: Annotated[str, typer.Option(help="Comma-separated executors to time.")] = "local,ray",
+    out_json: Annotated[Path, typer.Option(help="JSON result.")] = Path("docs/bench_batch.json"),
+    out_md: Annotated[Path, typer.Option(help="Markdown table.")] = Path("docs/bench_batch.md"),
+) -> None:
+    """Wall time of one batch of small scenes under each executor (local, ray)."""
+    from batch.bench import bench_batch
+
+    result = bench_batch(scenes, height, iterations, [e.strip() for e in executors.split(",") if e.strip()],
+                         out_md, out_json, log=lambda m: console.print(escape(m), soft_wrap=True))
+    for r in result["rows"]:
+        console.print(f"{r['executor']}: {r['wall_s']:.1f} s ({r['vs_local']:.2f}x local)")
+
+
 def user_errors(fn):
     """Commands whose ValueErrors are about their arguments: report them as bad input (exit 2)."""
     import functools
