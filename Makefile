@@ -44,10 +44,11 @@ test: setup
 	$(PY) -m pytest -q
 
 bench: setup
-	$(BIN)/pano-pipe bench render
+	$(BIN)/pano-pipe bench render --out docs
 	$(BIN)/pano-pipe simulate /tmp/pano-bench-sim --height 512 --views 4 --test-views 0 --effects all --profile
 	$(BIN)/pano-pipe simulate /tmp/pano-bench-sim --height 512 --views 4 --test-views 0 --effects none --profile
-	$(BIN)/pano-pipe bench pipeline
+	$(BIN)/pano-pipe bench pipeline --out docs
+	$(BIN)/pano-pipe bench batch --out docs
 
 clean-venv:
 	rm -rf .venv

@@ -64,9 +64,9 @@ def test_psnr(out_dir: Path | None) -> float | None:
 
 def run_batch(scene_dirs: list[Path], out_root: Path, config: dict, config_source: str, executor: Executor,
               target: str | None = None, until: str | None = None, force: bool = False,
-              resume: bool = False) -> list[SceneResult]:
-    """Run the selected stages of every scene; returns one result per scene, in order.
-    `target` is rerun in every scene (like `run STAGE`), `force` reruns every selected stage."""
+              resume: bool = False, force_upstream: bool = False) -> list[SceneResult]:
+    """Run the selected stages of every scene; returns one result per scene, in order. `target`,
+    `force` and `force_upstream` as in Engine.run."""
     from pipeline.engine import Engine, select_stages
     from pipeline.fsutil import run_folder_lock
     from pipeline.registry import build_registry
@@ -98,7 +98,7 @@ def run_batch(scene_dirs: list[Path], out_root: Path, config: dict, config_sourc
                 engine.prepare_run_folder()
             except PanoError as e:
                 r.error, r.exit_code = str(e), e.exit_code
-        jobs = _SceneJobs(registry, selected, config, config_source, target, force, resume)
+        jobs = _SceneJobs(registry, selected, config, config_source, target, force, resume, force_upstream)
         with Board([r.name for r in results], selected, executor.name) as board:
             _schedule(results, jobs, executor, board)
     return results
@@ -115,6 +115,7 @@ class _SceneJobs:
     target: str | None
     force: bool
     resume: bool
+    force_upstream: bool = False
 
     def deps(self, name: str) -> list[str]:
         return [d for d in self.registry[name].inputs if d in self.selected]
@@ -124,8 +125,11 @@ class _SceneJobs:
         return spec.resources(spec.params.model_validate(self.config.get(name, {})))
 
     def job(self, r: SceneResult, name: str, threads: int | None) -> StageJob:
+        from pipeline.engine import forced
+
         return StageJob(r.scene_dir, r.out_dir, name, self.config, self.config_source,
-                        force=self.force or name == self.target, resume=self.resume, threads=threads)
+                        force=forced(name, self.target, self.force, self.force_upstream), resume=self.resume,
+                        threads=threads)
 
 
 def _schedule(results: list[SceneResult], jobs: _SceneJobs, executor: Executor, board: Board) -> None:

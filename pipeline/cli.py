@@ -96,12 +96,32 @@ def load_config(path: Path | None, overrides: list[str] | None) -> tuple[dict[st
         if not sep or not dot or not stage or not param:
             raise PanoError("--set", f"{item!r} is not STAGE.PARAM=VALUE")
         try:
-            config.setdefault(stage, {})[param] = yaml.safe_load(value)
+            config.setdefault(stage, {})[param] = _override_value(stage, param, value)
         except yaml.YAMLError as e:
             raise PanoError("--set", f"{item!r}: the value is not valid YAML ({str(e).splitlines()[0]})") from None
         except RecursionError:
             raise PanoError("--set", f"{item!r}: the value is nested too deeply") from None
     return config, source
+
+
+def _override_value(stage: str, param: str, text: str):
+    """A --set value, typed by the parameter's schema: the text itself where the parameter takes
+    it ('360' for a projection that is '360' or 'cubemap'; '5' for a number), else the text
+    parsed as YAML (lists, null)."""
+    import yaml
+    from pydantic import TypeAdapter, ValidationError
+
+    from pipeline.registry import build_registry
+
+    spec = build_registry().get(stage)
+    field = spec.params.model_fields.get(param) if spec is not None else None
+    if field is not None:
+        try:
+            value = TypeAdapter(field.annotation).validate_python(text)
+            return value if isinstance(value, bool | int | float | str) else text
+        except (ValidationError, TypeError, ValueError):
+            pass
+    return yaml.safe_load(text)
 
 
 def make_engine(scene_dir: Path, out: Path | None, config_file: Path | None, overrides: list[str] | None):
@@ -139,7 +159,10 @@ def run(
                       "(default: runs/).")] = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
-    force: Annotated[bool, typer.Option("--force", help="Rerun every selected stage, cached or not.")] = False,
+    force: Annotated[bool, typer.Option(
+        "--force", help="Rerun the named stage (with 'all': every stage) even if it is up to date.")] = False,
+    force_upstream: Annotated[bool, typer.Option(
+        "--force-upstream", help="Rerun every stage the run touches, upstream ones included.")] = False,
     until: Annotated[Optional[str], typer.Option("--until", help="Stop after this stage.")] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue training from its last checkpoint.")] = False,
     executor: Annotated[str, typer.Option(
@@ -156,30 +179,69 @@ def run(
 
     if is_batch(scenes) or executor != "local" or address is not None:
         return _run_batch(stage, expand_scenes(scenes), out, config, set_, force, until, resume, executor,
-                          address, retries)
+                          address, retries, force_upstream)
     scene = scenes[0]
     engine = make_engine(scene, out, config, set_)
     target = None if stage == "all" else stage
     if target is not None and target not in engine.registry:
         raise PanoError(None, f"unknown stage {stage!r}; choose 'all' or one of {', '.join(engine.order)}")
-    results = engine.run(target=target, until=until, force=force, resume=resume)
+    console.print(run_header(engine), soft_wrap=True)
+    results = engine.run(target=target, until=until, force=force, resume=resume, force_upstream=force_upstream)
     table = Table(title="run")
     for col in ("stage", "outcome", "seconds", "note"):
         table.add_column(col)
     for r in results:
         table.add_row(r.name, r.outcome, f"{r.duration_s:.2f}" if r.outcome == "ran" else "", escape(r.reason))
     console.print(table)
-    evaluated = engine.out_dir / "evaluate" / "artifact.json"
-    if any(r.name == "evaluate" and r.outcome in ("ran", "cached") for r in results) and evaluated.is_file():
-        data = json.loads(evaluated.read_text())["data"]
+    print_run_summary(engine, scene, [r.name for r in results if r.outcome in ("ran", "cached")])
+
+
+def run_header(engine) -> str:
+    """One line before a run: what is run, on what, where to."""
+    import torch
+
+    views = engine.scene.views
+    n_train = sum(v.split == "train" for v in views)
+    train = engine.params_for("train")
+    height = train.resolved("height") if hasattr(train, "resolved") else getattr(train, "height", None)
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    return escape(f"scene {engine.scene.name}: {len(views)} views ({n_train} train, {len(views) - n_train} test); "
+                  f"training at {height}x{2 * height if height else '?'}, preset {train.preset}, "
+                  f"device {device} (training runs on the CPU); output {engine.out_dir}")
+
+
+def print_run_summary(engine, scene_arg: Path, finished: list[str]) -> None:
+    """After a run: the model, its size, per-view test metrics and the report command."""
+    out = engine.out_dir
+    if "train" in finished and (out / "train" / "artifact.json").is_file():
+        data = json.loads((out / "train" / "artifact.json").read_text())["data"]
+        psnr = data.get("final_train_psnr")
+        console.print(escape(f"model: {out / 'train' / data['ply']} ({data['num_gaussians']:,} Gaussians, "
+                             f"{data['iterations']} iterations"
+                             + (f", train PSNR {psnr:.2f} dB" if isinstance(psnr, int | float) else "") + ")"),
+                      soft_wrap=True)
+    if "evaluate" in finished and (out / "evaluate" / "artifact.json").is_file():
+        data = json.loads((out / "evaluate" / "artifact.json").read_text())["data"]
+        table = Table(title=f"metrics ({data.get('split', 'test')} views, {data['resolution'][0]}x"
+                            f"{data['resolution'][1]})", title_justify="left")
+        cols = [c for c in ("psnr", "ws_psnr", "ssim", "lpips", "depth_abs_rel", "depth_rmse")
+                if any(v.get(c) is not None for v in data["views"])]
+        table.add_column("view")
+        for c in cols:
+            table.add_column(c, justify="right")
+        for v in data["views"]:
+            table.add_row(escape(v["view"]), *(f"{v[c]:.4g}" if v.get(c) is not None else "—" for c in cols))
         mean = data.get("mean", {})
-        shown = ", ".join(f"{k} {v:.4g}" for k, v in mean.items() if isinstance(v, (int, float)))
-        console.print(f"[bold]test metrics:[/] {shown}")
+        table.add_row("[bold]mean[/]", *(f"{mean[c]:.4g}" if mean.get(c) is not None else "—" for c in cols))
+        console.print(table)
+        console.print(escape(f"render speed: {data['fps']:.1f} FPS at {data['resolution'][0]}x"
+                             f"{data['resolution'][1]}; report: pano-pipe report {scene_arg} --out {out}"),
+                      soft_wrap=True)
 
 
 def _run_batch(stage: str, scenes: list[Path], out: Path | None, config: Path | None, set_: list[str] | None,
                force: bool, until: str | None, resume: bool, executor_name: str, address: str | None,
-               retries: int) -> int:
+               retries: int, force_upstream: bool) -> int:
     from batch.executors import make_executor
     from batch.progress import console as batch_console
     from batch.progress import summary_table
@@ -190,7 +252,8 @@ def _run_batch(stage: str, scenes: list[Path], out: Path | None, config: Path | 
     executor = make_executor(executor_name, address=address, retries=retries)
     try:
         results = run_batch(scenes, out if out is not None else Path("runs"), cfg, source, executor,
-                            target=target, until=until, force=force, resume=resume)
+                            target=target, until=until, force=force, resume=resume,
+                            force_upstream=force_upstream)
     finally:
         executor.close()
     batch_console.print(summary_table([r.row() for r in results]))
@@ -201,6 +264,48 @@ def _run_batch(stage: str, scenes: list[Path], out: Path | None, config: Path | 
     if failed:
         raise typer.Exit(1)
     return 0
+
+
+def _type_name(annotation) -> str:
+    """A parameter's type as a user reads it: int, float | None, '360' | 'cubemap', list[int]."""
+    import types
+    import typing
+
+    origin = typing.get_origin(annotation)
+    if origin is typing.Literal:
+        return " | ".join(repr(a) for a in typing.get_args(annotation))
+    if origin in (typing.Union, types.UnionType):
+        return " | ".join(_type_name(a) for a in typing.get_args(annotation))
+    if origin is not None:
+        args = ", ".join(_type_name(a) for a in typing.get_args(annotation))
+        return f"{getattr(origin, '__name__', str(origin))}[{args}]"
+    if annotation is type(None):
+        return "None"
+    return getattr(annotation, "__name__", str(annotation))
+
+
+@app.command()
+def params(
+    stage: Annotated[Optional[str], typer.Argument(help="One stage (default: every stage).", show_default=False)]
+    = None,
+) -> None:
+    """Every stage parameter with its type, default and description (set with --set STAGE.PARAM=VALUE)."""
+    from pipeline.registry import build_registry
+
+    registry = build_registry()
+    if stage is not None and stage not in registry:
+        raise PanoError(None, f"unknown stage {stage!r}; stages are {', '.join(registry)}")
+    for name, spec in registry.items():
+        if stage is not None and name != stage:
+            continue
+        table = Table(title=f"{name}: {escape(spec.description)}", title_justify="left")
+        for col in ("parameter", "type", "default", "description"):
+            table.add_column(col, overflow="fold")
+        for field_name, info in spec.params.model_fields.items():
+            default = "(required)" if info.is_required() else repr(info.get_default(call_default_factory=True))
+            table.add_row(f"{name}.{field_name}", escape(_type_name(info.annotation)), escape(default),
+                          escape(info.description or ""))
+        console.print(table)
 
 
 @app.command()
@@ -257,6 +362,12 @@ def import_nerfstudio_command(
     console.print(f"wrote {escape(str(path))}", soft_wrap=True)
 
 
+#: Benchmarks write their tables here unless told otherwise: never into a checkout's docs/ by
+#: accident (`make bench` passes --out docs on purpose).
+BENCH_OUT = Path("runs/bench")
+BenchOutOpt = Annotated[Path, typer.Option("--out", help="Folder for the bench_<name>.{json,md} results.")]
+
+
 @bench_app.command("render")
 def bench_render(
     quick: Annotated[bool, typer.Option(help="A small grid (128x256 and 512x1024; 20k and 100k).")] = False,
@@ -264,8 +375,7 @@ def bench_render(
     counts: Annotated[str, typer.Option(help="Gaussian counts.")] = "20000,100000,300000",
     backends: Annotated[str, typer.Option(help="cpp,torch")] = "cpp,torch",
     repeats: Annotated[int, typer.Option(help="Timed repeats (median).")] = 3,
-    out_json: Annotated[Path, typer.Option(help="JSON result.")] = Path("docs/bench_render.json"),
-    out_md: Annotated[Path, typer.Option(help="Markdown table.")] = Path("docs/bench_render.md"),
+    out: BenchOutOpt = BENCH_OUT,
 ) -> None:
     """Renderer speed, memory, cubemap baseline and tangent-plane accuracy, per backend."""
     from splatting.bench import main as bench_main
@@ -273,7 +383,8 @@ def bench_render(
     bench_main(
         [
             "--resolutions", resolutions, "--counts", counts, "--backends", backends,
-            "--repeats", str(repeats), "--out-json", str(out_json), "--out-md", str(out_md),
+            "--repeats", str(repeats), "--out-json", str(out / "bench_render.json"),
+            "--out-md", str(out / "bench_render.md"),
             *(["--quick"] if quick else []),
         ]
     )
@@ -284,14 +395,13 @@ def bench_pipeline_command(
     scene: Annotated[Optional[Path], typer.Argument(help="Scene (default: a fresh `demo` scene).")] = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
-    out_json: Annotated[Path, typer.Option(help="JSON result.")] = Path("docs/bench_pipeline.json"),
-    out_md: Annotated[Path, typer.Option(help="Markdown table.")] = Path("docs/bench_pipeline.md"),
+    out: BenchOutOpt = BENCH_OUT,
 ) -> None:
     """Time a full run and a second, cached run of the same scene."""
     from pipeline.benchmarks import bench_pipeline
 
     cfg, _ = load_config(config, set_)
-    bench_pipeline(scene, cfg, out_md, out_json)
+    bench_pipeline(scene, cfg, out / "bench_pipeline.md", out / "bench_pipeline.json")
 
 
 @bench_app.command("batch")
@@ -300,14 +410,14 @@ def bench_batch_command(
     height: Annotated[int, typer.Option(min=16, help="Panorama height of each scene.")] = 32,
     iterations: Annotated[int, typer.Option(min=1, help="Training iterations per scene.")] = 300,
     executors: Annotated[str, typer.Option(help="Comma-separated executors to time.")] = "local,ray",
-    out_json: Annotated[Path, typer.Option(help="JSON result.")] = Path("docs/bench_batch.json"),
-    out_md: Annotated[Path, typer.Option(help="Markdown table.")] = Path("docs/bench_batch.md"),
+    out: BenchOutOpt = BENCH_OUT,
 ) -> None:
     """Wall time of one batch of small scenes under each executor (local, ray)."""
     from batch.bench import bench_batch
 
     result = bench_batch(scenes, height, iterations, [e.strip() for e in executors.split(",") if e.strip()],
-                         out_md, out_json, log=lambda m: console.print(escape(m), soft_wrap=True))
+                         out / "bench_batch.md", out / "bench_batch.json",
+                         log=lambda m: console.print(escape(m), soft_wrap=True))
     for r in result["rows"]:
         console.print(f"{r['executor']}: {r['wall_s']:.1f} s ({r['vs_local']:.2f}x local)")
 

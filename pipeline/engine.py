@@ -146,6 +146,11 @@ def stale_reason(meta: ArtifactMeta, plan: StagePlan, params_json: dict, scene_h
     return "model files changed"
 
 
+def forced(name: str, target: str | None, force: bool, force_upstream: bool) -> bool:
+    """Whether a run reruns `name` even if it is up to date (Engine.run's rule)."""
+    return name == target or force_upstream or (force and target is None)
+
+
 def select_stages(registry: dict[str, StageSpec], target: str | None = None, until: str | None = None) -> list[str]:
     """Stages a run touches: all, or the target/until stage and its ancestors, in DAG order."""
     order = topological_order(registry)
@@ -190,7 +195,8 @@ class Engine:
         try:
             params = spec.params.model_validate(self.config.get(name, {}))
         except ValidationError as e:
-            raise describe_validation_error(f"{self.config_source} [{name}]", e) from None
+            raise describe_validation_error(f"{self.config_source} [{name}]", e, list(spec.params.model_fields)
+                                            ) from None
         files = {k: self._param_file(name, k, v) for k, v in params if isinstance(v, Path)}
         return params.model_copy(update=files) if files else params
 
@@ -288,7 +294,7 @@ class Engine:
             elif problem := artifact_problem(self.out_dir / name, spec.output):
                 plan.state, plan.reason = "stale", problem
             else:
-                plan.state = "up-to-date"
+                plan.state, plan.reason = "up-to-date", "scene files, parameters, code and upstream unchanged"
             plans[name] = plan
         return plans
 
@@ -303,15 +309,20 @@ class Engine:
         until: str | None = None,
         force: bool = False,
         resume: bool = False,
+        force_upstream: bool = False,
     ) -> list[StageResult]:
-        """Run the selected stages. `target` is always rerun; `force` reruns every selected stage."""
+        """Run the selected stages, each only if it is not up to date, except: `target` is always
+        rerun; `force` reruns `target` (every selected stage when there is none);
+        `force_upstream` reruns every selected stage."""
         with run_folder_lock(self.out_dir):
             self.prepare_run_folder()
-            return self._run_locked(target, until, force, resume)
+            return self._run_locked(target, until, force, resume, force_upstream)
 
-    def _run_locked(self, target: str | None, until: str | None, force: bool, resume: bool) -> list[StageResult]:
+    def _run_locked(self, target: str | None, until: str | None, force: bool, resume: bool,
+                    force_upstream: bool) -> list[StageResult]:
         plans = self.plan()
-        return [self._step(name, plans, force or name == target, resume) for name in self.select(target, until)]
+        return [self._step(name, plans, forced(name, target, force, force_upstream), resume)
+                for name in self.select(target, until)]
 
     def run_one(self, name: str, force: bool = False, resume: bool = False) -> StageResult:
         """Bring one stage up to date, its upstream stages being done already: the unit of work a

@@ -18,12 +18,15 @@ class PanoError(Exception):
         super().__init__(f"{self.where}: {problem}" if self.where else problem)
 
 
-def describe_validation_error(where: str | Path, err) -> PanoError:
-    """Turn a pydantic ValidationError into a one-line PanoError naming the field."""
+def describe_validation_error(where: str | Path, err, valid_names=None) -> PanoError:
+    """Turn a pydantic ValidationError into a one-line PanoError naming the field; an unknown
+    field lists `valid_names` (the model's fields) when given."""
     first = err.errors()[0]
     field = ".".join(str(p) for p in first.get("loc", ()))
     msg = first.get("msg", "invalid")
     msg = msg.removeprefix("Value error, ")
+    if first.get("type") == "extra_forbidden" and valid_names:
+        msg = f"unknown parameter; valid ones: {', '.join(valid_names)}"
     extra = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
     return PanoError(where, f"{field}: {msg}{extra}" if field else f"{msg}{extra}")
 

@@ -274,14 +274,25 @@ def initial_gaussians(ctx: StageContext, p: Params, views: list[View]) -> tuple[
     return g, init
 
 
-def load_images(scene: Scene, views: list[View], height: int) -> dict[str, np.ndarray]:
-    out = {}
+def load_images(scene: Scene, views: list[View], height: int, warn=None) -> dict[str, np.ndarray]:
+    """The training images at height x 2*height; `warn` is told which were smaller (upsampled:
+    the model then learns interpolated detail)."""
+    from pipeline.scene_loader import image_size
+
+    out, small = {}, []
     for v in views:
         path = scene.image_path(v)
+        native = image_size(path)
+        if native is not None and native[0] < height:  # (H, W)
+            small.append(f"{v.name} ({native[1]}x{native[0]})")
         try:
             out[v.name] = read_rgb(path, size=(height, 2 * height))
         except ValueError:
             raise PanoError(path, "unreadable image") from None
+    if small and warn is not None:
+        warn(f"{len(small)} training image(s) smaller than the training size {2 * height}x{height}, upsampled: "
+             + ", ".join(small[:4]) + (" ..." if len(small) > 4 else "")
+             + "; set train.height to the images' height or less")
     return out
 
 
@@ -333,7 +344,7 @@ def run(ctx: StageContext) -> TrainOutput:
         torch.set_num_threads(p.threads)
     views = ctx.scene.manifest.train_views()
     height = int(p.resolved("height"))
-    images = load_images(ctx.scene, views, height)
+    images = load_images(ctx.scene, views, height, warn=ctx.warn)
     train_views = build_views(images, {v.name: v.viewmat for v in views}, p.projection)
     g, init = initial_gaussians(ctx, p, views)
     extent = p.extent if p.extent is not None else scene_extent(g.means)
