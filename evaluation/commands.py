@@ -4,7 +4,6 @@ pipeline/cli.py registers them). Run folders default to runs/<scene-name>/ exact
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -107,19 +106,42 @@ def sweep_command(
 def render_command(
     scene: SceneArg,
     path: Annotated[
-        str, typer.Option("--path", help="Views to fly through: train, test, all, or comma-separated view names.")
+        str,
+        typer.Option("--path", help="Views to fly through: train, test, all, comma-separated view names, "
+                                    "or a nerfstudio camera_path.json file."),
     ] = "train",
     perspective: Annotated[bool, typer.Option("--perspective", help="A 90° pinhole view instead of the panorama.")] = False,
-    frames: Annotated[int, typer.Option("--frames", min=1, help="Number of frames.")] = 60,
+    frames: Annotated[
+        Optional[int], typer.Option("--frames", min=1, help="Number of frames (default 60; a camera path file sets its own).")
+    ] = None,
     out: OutOpt = None,
     height: Annotated[
-        Optional[int], typer.Option("--height", min=8, help="Frame height (default: the training height).")
+        Optional[int], typer.Option("--height", min=8, help="Frame height (default: the training height, or the path file's).")
     ] = None,
-    fps: Annotated[float, typer.Option("--fps", min=1, help="Video frame rate.")] = 24.0,
+    fps: Annotated[
+        Optional[float], typer.Option("--fps", min=1, help="Video frame rate (default 24, or the path file's).")
+    ] = None,
+    world_up: Annotated[
+        str, typer.Option("--world-up", help="Up axis of a camera path file's nerfstudio world: +z, +y or -y "
+                                             "(as for import-nerfstudio).")
+    ] = "+z",
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="Replace an existing video of the same name (default: write NAME-2.mp4, ...).")
+    ] = False,
     backend: Annotated[Optional[str], typer.Option("--backend", help="Splatting backend (default: the renderer's).")] = None,
 ) -> None:
-    """A fly-through video (mp4) between the views' poses, rendered from the trained model."""
-    from evaluation.flythrough import interpolate_poses, path_views, render_flythrough
+    """A fly-through video (H.264 mp4) along the views or a camera path file, rendered from the trained model."""
+    import math
+
+    from evaluation.flythrough import (
+        even_size,
+        is_path_file,
+        output_path,
+        path_views,
+        read_camera_path,
+        render_flythrough,
+        walk_poses,
+    )
     from evaluation.model_io import equirect_camera, load_model, pinhole_camera
     from pipeline.console import track
     from pipeline.engine import load_artifact
@@ -130,15 +152,38 @@ def render_command(
     if not (tdir / "artifact.json").is_file():
         raise PanoError(tdir / "artifact.json", f"missing; train first with `pano-pipe run train {scene}`")
     train = load_artifact(tdir, TrainOutput)
-    views = path_views(engine.scene, path)
-    poses = interpolate_poses([v.pose_matrix for v in views], frames)
-    h = int(height or train.data.resolution[0])
-    # even frame sizes: many mp4 players reject odd ones
-    h += h % 2
-    camera = pinhole_camera(h, 2 * int(round(h * 2 / 3))) if perspective else equirect_camera(h, 2 * h)
+    train_h = int(train.data.resolution[0])
+    if is_path_file(path):
+        cp = read_camera_path(Path(path), world_up=world_up)
+        if frames is not None and frames != len(cp.poses):
+            console.print(f"[yellow]note:[/] --frames ignored: {escape(path)} sets {len(cp.poses)} frames")
+        poses = cp.poses
+        persp = perspective or cp.kind == "perspective"
+        fps = fps or cp.fps or 24.0
+        if persp:
+            h = height or cp.height or train_h
+            if cp.height and cp.width:
+                w = round(h * cp.width / cp.height)
+            else:
+                w = round(h * (cp.aspect or 4 / 3))
+            h, w = even_size(h, w)
+            # nerfstudio's fov is vertical; ours is horizontal
+            fov_h = math.degrees(2 * math.atan(math.tan(math.radians(cp.fov_deg) / 2) * w / h))
+            camera = pinhole_camera(h, w, fov_deg=min(fov_h, 179.0))
+        else:
+            h = height or cp.height or train_h
+            h, w = even_size(h, 2 * h)
+            camera = equirect_camera(h, w)
+    else:
+        views = path_views(engine.scene, path)
+        poses = walk_poses([v.pose_matrix for v in views], frames or 60)
+        persp = perspective
+        fps = fps or 24.0
+        h = int(height or train_h)
+        h, w = even_size(h, 2 * int(round(h * 2 / 3)) if persp else 2 * h)
+        camera = pinhole_camera(h, w) if persp else equirect_camera(h, w)
     g = load_model(train.path(train.data.ply))
-    slug = re.sub(r"[^A-Za-z0-9_.-]+", "_", path)[:60]
-    target = engine.out_dir / "render" / f"flythrough-{slug}-{'persp' if perspective else 'pano'}.mp4"
+    target = output_path(engine.out_dir / "render", path, "persp" if persp else "pano", overwrite=overwrite)
     res = render_flythrough(g, poses, camera, target, fps=fps, backend=backend, track=track)
     console.print(f"[bold]video:[/] {escape(str(res.path))} ({res.frames} frames, {res.size[1]}×{res.size[0]}, "
-                  f"{res.frames / max(res.seconds, 1e-9):.1f} frames/s rendered)")
+                  f"H.264, {fps:g} fps, {res.frames / max(res.seconds, 1e-9):.1f} frames/s rendered)")

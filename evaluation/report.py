@@ -1,12 +1,14 @@
 """`pano-pipe report`: one self-contained HTML page (every image base64-embedded) and a
 Markdown twin with its PNGs beside it, built from a run folder's artifacts.
 
-Sections: test metrics (table, LPIPS availability, render speed); per evaluated
-view ground truth / render / error / depth; training curves (loss, PSNR, #Gaussians
-against iteration and against wall time); the floor plan with cameras (the union
-stage's drawing, else one drawn from the scene's poses and ground-truth plan);
-stage durations (artifacts' meta.duration_s and run_log.jsonl). A missing
-artifact leaves its section saying what to run, rather than failing the report.
+Sections: files (relative links to the model, fly-through videos, config.yaml, logs);
+test metrics (one row per view, the mean, best/worst view, LPIPS availability, render
+speed); per evaluated view ground truth / render / error / depth and, with ground-truth
+depth, that depth and the depth error — every false-colour map with a colour bar (units,
+range); training (a large loss / PSNR chart against iteration with the final test PSNR,
+and #Gaussians / wall time); the floor plan with every camera labelled; each stage's
+parameters (table + config.yaml); stage durations. A missing artifact leaves its section
+saying what to run, rather than failing the report. See docs/evaluation.md.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import base64
 import html
 import json
 import math
+import os
 import shutil
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -41,6 +44,7 @@ LOG_KEYS = {
     "num_gaussians": ("num_gaussians", "n_gaussians", "gaussians", "num"),
     "ema_loss": ("ema_loss",),
     "ema_psnr": ("ema_psnr",),
+    "test_psnr": ("test_psnr", "eval_psnr", "psnr_test", "val_psnr"),
     "elapsed": ("elapsed_s", "elapsed", "wall_s", "time_s", "seconds", "elapsed_seconds", "time", "wall_time"),
 }
 
@@ -51,6 +55,10 @@ class ReportPaths:
     markdown: Path
     folder: Path
     sections: list[str] = field(default_factory=list)
+    #: the camera names written on the floor-plan figure (empty when it was not drawn from the scene)
+    camera_labels: list[str] = field(default_factory=list)
+    #: relative href of every link the report holds (to files of the run and of the report folder)
+    links: list[str] = field(default_factory=list)
 
 
 # ----------------------------------------------------------------------------- reading the run
@@ -138,35 +146,93 @@ def _plt():
     return plt
 
 
-def plot_training_curves(series: dict[str, np.ndarray], path: Path) -> bool:
-    """Loss, PSNR and #Gaussians vs iteration (top row) and vs wall time (bottom row)."""
-    metrics = [k for k in ("loss", "psnr", "num_gaussians") if k in series]
-    if not metrics:
+def plot_training_curves(series: dict[str, np.ndarray], path: Path, final_test: tuple[float, float, str] | None = None
+                         ) -> list[str]:
+    """The main training chart, large: loss (top) and PSNR (bottom) against iteration.
+
+    PSNR shows the training PSNR (raw faint, running mean solid when logged), the test PSNR the log
+    records periodically (`test_psnr` and its aliases) when it does, and `final_test` = (iteration,
+    PSNR, label) — the evaluate stage's mean — as a star. Returns the legend labels drawn (empty:
+    nothing to draw, no file written)."""
+    if "loss" not in series and "psnr" not in series and "test_psnr" not in series:
+        return []
+    plt = _plt()
+    fig, (ax_l, ax_p) = plt.subplots(2, 1, figsize=(11, 8), sharex=True)
+    labels: list[str] = []
+    x = series["iteration"]
+
+    def line(ax, key, colour, name):
+        y = series.get(key)
+        if y is None:
+            return
+        ok = np.isfinite(x) & np.isfinite(y)
+        if not ok.any():
+            return
+        ema = series.get(f"ema_{key}")
+        if ema is not None and np.isfinite(ema).any():
+            # raw values jump from view to view: show them faint, their running mean solid
+            ax.plot(x[ok], y[ok], lw=0.8, color=colour, alpha=0.3, label=f"{name} (per iteration)")
+            oke = np.isfinite(x) & np.isfinite(ema)
+            ax.plot(x[oke], ema[oke], lw=1.8, color=colour, label=f"{name} (running mean)")
+            labels.extend([f"{name} (per iteration)", f"{name} (running mean)"])
+        else:
+            ax.plot(x[ok], y[ok], lw=1.6, color=colour, label=name)
+            labels.append(name)
+        if key == "loss" and np.all(y[ok] > 0):
+            ax.set_yscale("log")
+
+    line(ax_l, "loss", "C0", "training loss")
+    tp = series.get("test_psnr")
+    line(ax_p, "psnr", "C1", "training PSNR")
+    if tp is not None and np.isfinite(tp).any():
+        ok = np.isfinite(x) & np.isfinite(tp)
+        ax_p.plot(x[ok], tp[ok], "o-", color="C3", lw=1.8, ms=5, label="test PSNR (periodic)")
+        labels.append("test PSNR (periodic)")
+    if final_test is not None and math.isfinite(final_test[1]):
+        ax_p.plot([final_test[0]], [final_test[1]], "*", color="C3", ms=16, markeredgecolor="k",
+                  label=final_test[2])
+        ax_p.axhline(final_test[1], color="C3", ls="--", lw=0.8, alpha=0.6)
+        labels.append(final_test[2])
+    if not labels:
+        plt.close(fig)
+        return []
+    ax_l.set_ylabel("loss (0.8·L1 + 0.2·D-SSIM + λ·layout)", fontsize=11)
+    ax_l.set_title("training loss", fontsize=13)
+    ax_p.set_ylabel("PSNR (dB)", fontsize=11)
+    ax_p.set_title("PSNR", fontsize=13)
+    ax_p.set_xlabel("iteration", fontsize=11)
+    for ax in (ax_l, ax_p):
+        ax.grid(alpha=0.3)
+        ax.tick_params(labelsize=10)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=10, loc="best")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return labels
+
+
+def plot_training_extra(series: dict[str, np.ndarray], path: Path) -> bool:
+    """The smaller chart: #Gaussians against iteration, loss and PSNR against wall time."""
+    panels = []
+    if "num_gaussians" in series:
+        panels.append(("iteration", "num_gaussians", "iteration", "# Gaussians", "C2"))
+    if "elapsed" in series:
+        panels += [("elapsed", k, "wall time (s)", t, c) for k, t, c in
+                   (("loss", "training loss", "C0"), ("psnr", "training PSNR (dB)", "C1")) if k in series]
+    if not panels:
         return False
     plt = _plt()
-    xs = [("iteration", "iteration")] + ([("elapsed", "wall time (s)")] if "elapsed" in series else [])
-    fig, axes = plt.subplots(len(xs), len(metrics), figsize=(4.2 * len(metrics), 3.2 * len(xs)), squeeze=False)
-    titles = {"loss": "training loss", "psnr": "training PSNR (dB)", "num_gaussians": "# Gaussians"}
-    for i, (xk, xlabel) in enumerate(xs):
-        for j, m in enumerate(metrics):
-            ax = axes[i][j]
-            x, y = series[xk], series[m]
-            ok = np.isfinite(x) & np.isfinite(y)
-            colour = ("C0", "C1", "C2")[j]
-            ema = series.get(f"ema_{m}")
-            if ema is not None and np.isfinite(ema).any():
-                # raw values jump from view to view: show them faint, their running mean solid
-                ax.plot(x[ok], y[ok], lw=0.8, color=colour, alpha=0.3, label="per iteration")
-                oke = np.isfinite(x) & np.isfinite(ema)
-                ax.plot(x[oke], ema[oke], lw=1.4, color=colour, label="running mean")
-                ax.legend(fontsize=7)
-            else:
-                ax.plot(x[ok], y[ok], lw=1.2, color=colour)
-            if m == "loss" and ok.any() and np.all(y[ok] > 0):
-                ax.set_yscale("log")
-            ax.set_xlabel(xlabel)
-            ax.set_title(titles[m])
-            ax.grid(alpha=0.3)
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 3.4), squeeze=False)
+    for ax, (xk, yk, xlabel, title, colour) in zip(axes[0], panels):
+        x, y = series[xk], series[yk]
+        ok = np.isfinite(x) & np.isfinite(y)
+        ax.plot(x[ok], y[ok], lw=1.2, color=colour)
+        if yk == "loss" and ok.any() and np.all(y[ok] > 0):
+            ax.set_yscale("log")
+        ax.set_xlabel(xlabel)
+        ax.set_title(title)
+        ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -192,39 +258,232 @@ def plot_durations(rows: list[dict], path: Path) -> bool:
     return True
 
 
-def draw_floor_plan_fallback(scene, path: Path) -> bool:
-    """Cameras from the scene's poses (train ●, test ▲) over the ground-truth rooms where the scene has them."""
-    if scene is None:
-        return False
+def _ground_truth_rooms(scene) -> list[np.ndarray]:
+    fp = scene.manifest.floor_plan if scene is not None else None
+    if not fp:
+        return []
+    try:
+        doc = json.loads(scene.path(fp).read_text())
+        return [np.asarray(room["polygon"], dtype=float) for room in doc.get("rooms", [])]
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+
+
+def plot_floor_plan(scene, path: Path, rooms: list[dict] | None = None) -> list[str]:
+    """Every camera of the scene (train ● blue, test ▲ red, an arrow where the panorama's centre looks,
+    each labelled with its view name) over the merged floor plan (`rooms`, the union artifact's) and
+    the scene's ground-truth rooms where it has them, with a legend.
+
+    Returns the camera labels written on the figure, in the scene's order (empty: nothing drawn)."""
+    if scene is None or not scene.views:
+        return []
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(5, 5))
-    fp = scene.manifest.floor_plan
-    if fp and scene.path(fp).is_file():
+    from matplotlib.lines import Line2D
+
+    fig, ax = plt.subplots(figsize=(8, 8))
+    handles = []
+    for i, room in enumerate(rooms or []):
         try:
-            doc = json.loads(scene.path(fp).read_text())
-            for room in doc.get("rooms", []):
-                poly = np.asarray(room["polygon"], dtype=float)
-                poly = np.vstack([poly, poly[:1]])
-                ax.plot(poly[:, 0], poly[:, 1], "k-", lw=1.5)
-        except (OSError, ValueError, KeyError):
-            pass
+            rings = [np.asarray(room["polygon"], dtype=float)] + [np.asarray(h, dtype=float)
+                                                                   for h in room.get("holes", [])]
+        except (KeyError, TypeError, ValueError):
+            continue
+        for j, ring in enumerate(rings):
+            if ring.ndim != 2 or len(ring) < 3:
+                continue
+            ax.fill(ring[:, 0], ring[:, 1], facecolor="none" if j else "C2", alpha=0.2 if not j else 1.0)
+            closed = np.vstack([ring, ring[:1]])
+            ax.plot(closed[:, 0], closed[:, 1], "-", color="C2", lw=2)
+        if i == 0:
+            handles.append(Line2D([], [], color="C2", lw=2, label="merged floor plan (union stage)"))
+    gt_rooms = _ground_truth_rooms(scene)
+    for poly in gt_rooms:
+        closed = np.vstack([poly, poly[:1]])
+        ax.plot(closed[:, 0], closed[:, 1], "k--", lw=1.2)
+    if gt_rooms:
+        handles.append(Line2D([], [], color="k", ls="--", lw=1.2, label="ground-truth rooms"))
+    style = {"train": ("o", "C0", "train view"), "test": ("^", "C3", "test view")}
+    labels: list[str] = []
+    seen = set()
+    xz = np.array([[v.position[0], v.position[2]] for v in scene.views])
+    span = float(np.ptp(xz, axis=0).max()) if len(xz) > 1 else 1.0
+    arrow = max(0.08 * max(span, 1.0), 0.2)
     for v in scene.views:
+        marker, colour, name = style.get(v.split, ("s", "C7", str(v.split)))
         p = v.position
         fwd = v.pose_matrix[:3, 2]  # camera z axis in the world: where the panorama's centre looks
-        marker = "o" if v.split == "train" else "^"
-        color = "C0" if v.split == "train" else "C3"
-        ax.plot(p[0], p[2], marker, color=color)
-        ax.arrow(p[0], p[2], 0.3 * fwd[0], 0.3 * fwd[2], head_width=0.06, color=color)
-        ax.annotate(v.name, (p[0], p[2]), textcoords="offset points", xytext=(4, 4), fontsize=7)
+        ax.plot(p[0], p[2], marker, color=colour, ms=9, markeredgecolor="k")
+        ax.arrow(p[0], p[2], arrow * fwd[0], arrow * fwd[2], head_width=0.3 * arrow, color=colour,
+                 length_includes_head=True, zorder=4)
+        ax.annotate(v.name, (p[0], p[2]), textcoords="offset points", xytext=(6, 6), fontsize=9,
+                    color=colour, bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.6})
+        labels.append(v.name)
+        if v.split not in seen:
+            seen.add(v.split)
+            handles.append(Line2D([], [], marker=marker, color=colour, ls="none", ms=9, markeredgecolor="k",
+                                  label=f"{name} ({sum(1 for w in scene.views if w.split == v.split)})"))
     ax.set_aspect("equal")
     ax.set_xlabel("world x (m)")
     ax.set_ylabel("world z (m)")
-    ax.set_title("cameras (● train, ▲ test)")
+    ax.set_title("floor plan and cameras (seen from above; arrows: panorama centre direction)")
     ax.grid(alpha=0.3)
+    ax.legend(handles=handles, loc="best", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
-    return True
+    return labels
+
+
+def stage_params(run_dir: Path) -> dict[str, dict]:
+    """{stage: meta.params} of every stage with an artifact, in pipeline order."""
+    names = list(STAGE_ORDER) + sorted(
+        p.parent.name for p in run_dir.glob("*/artifact.json") if p.parent.name not in STAGE_ORDER
+    )
+    out = {}
+    for s in names:
+        art = read_artifact(run_dir, s)
+        if art is not None:
+            params = art.get("meta", {}).get("params")
+            out[s] = params if isinstance(params, dict) else {}
+    return out
+
+
+def flatten_params(params: dict, prefix: str = "") -> list[tuple[str, str]]:
+    """Nested parameters as (dotted name, value) rows; lists, booleans and None as JSON."""
+    rows = []
+    for k, v in params.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict) and v:
+            rows += flatten_params(v, key + ".")
+        else:
+            rows.append((key, v if isinstance(v, str) else json.dumps(v)))
+    return rows
+
+
+def write_config_yaml(path: Path, params: dict[str, dict], scene_name: str) -> None:
+    import yaml
+
+    doc = {"scene": scene_name, "stages": params}
+    path.write_text("# the parameters each stage of this run ran with (artifact meta.params), written by "
+                    "pano-pipe report\n" + yaml.safe_dump(doc, sort_keys=False, allow_unicode=True), encoding="utf-8")
+
+
+def run_links(run_dir: Path, out_dir: Path, config_path: Path) -> list[tuple[str, str]]:
+    """(relative href, text) for the files a reader wants from the run: the trained model, the
+    fly-through videos, the configuration, the run and training logs, the metrics CSV. Only files
+    that exist; hrefs are relative to the report folder so the two move together."""
+    items: list[tuple[Path, str]] = []
+    tr = read_artifact(run_dir, "train")
+    ply = run_dir / "train" / ((tr or {}).get("data", {}).get("ply") or "point_cloud.ply")
+    items.append((ply, "trained model (3D Gaussians, PLY)"))
+    for video in sorted((run_dir / "render").glob("*.mp4")):
+        if video.name.startswith("."):
+            continue  # a render still being written (hidden temporary file)
+        items.append((video, f"fly-through video {video.name}"))
+    items.append((config_path, "configuration: every stage's parameters (YAML)"))
+    items.append((run_dir / "run_log.jsonl", "run log (run_log.jsonl)"))
+    log = run_dir / "train" / ((tr or {}).get("data", {}).get("log") or "train_log.jsonl")
+    items.append((log, "training log (train_log.jsonl)"))
+    items.append((run_dir / "evaluate" / "metrics.csv", "per-view metrics (CSV)"))
+    out = []
+    for target, text in items:
+        if target.is_file():
+            href = Path(os.path.relpath(target.resolve(), out_dir.resolve())).as_posix()
+            out.append((href, text))
+    return out
+
+
+def per_view_table(doc: _Doc, d: dict) -> None:
+    """Each evaluated view's metrics (one row per view), then the mean; with two or more views a line
+    naming the best and the worst view by PSNR, so a spread between views is not hidden by the mean."""
+    views = d["views"]
+    keys = [k for k in METRIC_LABELS if any(v.get(k) is not None for v in views)]
+    extra = [("depth_valid_pixels", "depth px"), ("render_seconds", "render (s)")]
+    extra = [(k, lbl) for k, lbl in extra if any(v.get(k) is not None for v in views)]
+    rows = [[v["view"], str(v.get("split", d.get("split", ""))), *[_fmt(v.get(k)) for k in keys],
+             *[_fmt(v.get(k)) for k, _ in extra]] for v in views]
+    rows.append(["mean", "", *[_fmt(d["mean"].get(k)) for k in keys], *["" for _ in extra]])
+    doc.table(["view", "split", *[METRIC_LABELS[k] for k in keys], *[lbl for _, lbl in extra]], rows)
+    scored = [v for v in views if isinstance(v.get("psnr"), (int, float)) and math.isfinite(v["psnr"])]
+    if len(scored) >= 2:
+        best = max(scored, key=lambda v: v["psnr"])
+        worst = min(scored, key=lambda v: v["psnr"])
+        doc.p(f"Per view: best {best['view']} {best['psnr']:.2f} dB, worst {worst['view']} "
+              f"{worst['psnr']:.2f} dB ({best['psnr'] - worst['psnr']:.2f} dB apart).")
+
+
+def view_images(edir: Path, v: dict, scene, view, img_dir: Path) -> tuple[list[tuple], list[str]]:
+    """One evaluated view's images for the report: ground truth, render, error map and rendered depth
+    (the evaluate stage's PNGs), and where the scene has ground-truth depth, that depth on the rendered
+    depth's scale and the depth-error map (drawn here into img/). False-colour maps come with a colour
+    bar (units, range) drawn into img/. Returns (items for _Doc.images, notes)."""
+    from evaluation.visuals import (
+        DEPTH_ERROR_UNITS,
+        DEPTH_UNITS,
+        ERROR_UNITS,
+        ERROR_VMAX,
+        depth_error,
+        depth_error_rgb,
+        depth_error_vmax,
+        depth_rgb,
+        depth_vmax,
+        write_colorbar,
+    )
+    from panogeom.images import write_rgb
+
+    prefix = f"view-{v['view']}"
+    notes: list[str] = []
+
+    def cbar(kind: str, vmin: float, vmax: float, cmap: str, units: str):
+        path = img_dir / f"{prefix}-colorbar-{kind}.png"
+        write_colorbar(path, vmin, vmax, cmap, units)
+        return path, f"{units}, {vmin:.3g} … {vmax:.3g}"
+
+    items: list[tuple] = [(edir / v["gt"], "ground truth"), (edir / v["render"], "render")]
+    items.append((edir / v["error"], f"|error|, 0 … {ERROR_VMAX:g} (image intensity)",
+                  cbar("error", 0.0, ERROR_VMAX, "inferno", ERROR_UNITS)))
+    depth = None
+    npy = edir / v["depth_npy"] if v.get("depth_npy") else None
+    if npy is not None and npy.is_file():
+        try:
+            depth = np.load(npy, allow_pickle=False).astype(np.float64)
+        except (OSError, ValueError):
+            depth = None
+    if depth is not None:
+        dmax = depth_vmax(depth)
+        items.append((edir / v["depth"], f"rendered depth, 0 … {dmax:.3g} m",
+                      cbar("depth", 0.0, dmax, "turbo", DEPTH_UNITS)))
+    else:
+        items.append((edir / v["depth"], "rendered depth (scale not recorded: no depth .npy)"))
+    items = [it for it in items if it[0].is_file()]
+
+    gt_path = scene.gt_depth_path(view) if scene is not None and view is not None else None
+    if gt_path is None or not gt_path.is_file():
+        return items, notes
+    if depth is None:
+        notes.append("Ground-truth depth exists but the rendered depth (.npy) is missing: no depth-error map.")
+        return items, notes
+    from pipeline.errors import PanoError
+    from stages.evaluate import load_gt_depth
+
+    try:
+        gt = load_gt_depth(gt_path, depth.shape).astype(np.float64)
+    except (PanoError, OSError, ValueError) as e:  # a bad file must not stop the report
+        notes.append(f"Ground-truth depth {gt_path.name} unreadable: {e}")
+        return items, notes
+    gt_png = img_dir / f"{prefix}-gt-depth.png"
+    write_rgb(gt_png, depth_rgb(gt, vmax=dmax))
+    items.append((gt_png, f"ground-truth depth, 0 … {dmax:.3g} m", cbar("gt-depth", 0.0, dmax, "turbo", DEPTH_UNITS)))
+    err, valid = depth_error(depth, gt)
+    emax = depth_error_vmax(err)
+    err_png = img_dir / f"{prefix}-depth-error.png"
+    write_rgb(err_png, depth_error_rgb(err, emax))
+    items.append((err_png, f"|depth error|, 0 … {emax:.3g} m",
+                  cbar("depth-error", 0.0, emax, "inferno", DEPTH_ERROR_UNITS)))
+    if valid.any():
+        notes.append(f"Depth error over {int(valid.sum())} pixels with ground truth: mean "
+                     f"{float(np.nanmean(err)):.3g} m, median {float(np.nanmedian(err)):.3g} m.")
+    return items, notes
 
 
 # ----------------------------------------------------------------------------- assembling
@@ -268,26 +527,53 @@ class _Doc:
             self.md.append("| " + " | ".join(c.replace("|", "\\|") for c in r) + " |")
         self.md.append("")
 
-    def images(self, items: list[tuple[Path, str]], name_prefix: str) -> None:
-        """A row of images with captions: embedded in the HTML, copied beside the Markdown."""
+    def links(self, items: list[tuple[str, str]]) -> None:
+        """A bullet list of (relative href, text) links to files of the run."""
+        lis = "".join(f'<li><a href="{html.escape(href)}">{html.escape(text)}</a></li>' for href, text in items)
+        self.html.append(f"<ul>{lis}</ul>")
+        for href, text in items:
+            self.md.append(f"- [{text}]({href.replace(' ', '%20')})")
+        self.md.append("")
+
+    def _embed(self, src: Path, name_prefix: str) -> tuple[str, str]:
+        """Copy `src` into img/ (unless it is there already); its base64 and its name in img/."""
+        # gt/, renders/, errors/ and depth/ hold files of the same name: keep the folder in it
+        dst_name = src.name if src.name.startswith(name_prefix) else f"{name_prefix}-{src.parent.name}-{src.stem}.png"
+        dst = self.img_dir / dst_name
+        if src.resolve() != dst.resolve():
+            shutil.copyfile(src, dst)
+        return base64.b64encode(dst.read_bytes()).decode("ascii"), dst_name
+
+    def images(self, items: list[tuple], name_prefix: str) -> None:
+        """A row of images with captions: embedded in the HTML, copied beside the Markdown.
+
+        An item is (path, caption) or (path, caption, (colour bar path, units label)): a false-colour
+        map then shows its colour bar, with the units, right under it."""
         figs, mds = [], []
-        for src, caption in items:
-            # gt/, renders/, errors/ and depth/ hold files of the same name: keep the folder in it
-            dst_name = (
-                src.name if src.name.startswith(name_prefix) else f"{name_prefix}-{src.parent.name}-{src.stem}.png"
-            )
-            dst = self.img_dir / dst_name
-            if src.resolve() != dst.resolve():
-                shutil.copyfile(src, dst)
-            b64 = base64.b64encode(dst.read_bytes()).decode("ascii")
+        for item in items:
+            src, caption = item[0], item[1]
+            cbar = item[2] if len(item) > 2 else None
+            b64, dst_name = self._embed(src, name_prefix)
+            extra, md_extra = "", ""
+            if cbar is not None:
+                cb64, cb_name = self._embed(cbar[0], name_prefix)
+                alt = f"colour bar: {cbar[1]}"
+                extra = f'<img class="cbar" alt="{html.escape(alt)}" src="data:image/png;base64,{cb64}">'
+                md_extra = f"<br>![{alt}]({self.img_dir.name}/{cb_name})"
             figs.append(
-                f'<figure><img alt="{html.escape(caption)}" src="data:image/png;base64,{b64}">'
+                f'<figure><img alt="{html.escape(caption)}" src="data:image/png;base64,{b64}">{extra}'
                 f"<figcaption>{html.escape(caption)}</figcaption></figure>"
             )
-            mds.append(f"![{caption}]({self.img_dir.name}/{dst_name})")
+            mds.append(f"![{caption}]({self.img_dir.name}/{dst_name}){md_extra}")
         cls = "row single" if len(figs) == 1 else "row"
         self.html.append(f'<div class="{cls}">' + "".join(figs) + "</div>")
-        self.md.append(" ".join(mds) + "\n")
+        if any(len(i) > 2 and i[2] is not None for i in items):
+            # maps with colour bars: one table cell each, so a bar stays under its map
+            self.md.append("| " + " | ".join(str(i[1]).replace("|", "\\|") for i in items) + " |")
+            self.md.append("|" + "---|" * len(items))
+            self.md.append("| " + " | ".join(m.replace("|", "\\|") for m in mds) + " |\n")
+        else:
+            self.md.append(" ".join(mds) + "\n")
 
 
 _CSS = """
@@ -296,13 +582,16 @@ h1{border-bottom:2px solid #444}h2{border-bottom:1px solid #ccc;margin-top:2em}
 table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #ccc;padding:4px 10px;text-align:right}
 th{background:#f0f0f0}td:first-child,th:first-child{text-align:left}
 .row{display:flex;flex-wrap:wrap;gap:8px}figure{margin:0;flex:1 1 260px;max-width:100%}
-figure img{width:100%;image-rendering:pixelated;border:1px solid #ddd}figcaption{font-size:.8em;color:#555}
+figure img{width:100%;image-rendering:pixelated;border:1px solid #ddd}
+figure img.cbar{image-rendering:auto;border:none}figcaption{font-size:.8em;color:#555}
+.row:not(.single) figure{max-width:calc(25% - 6px)}
 .single figure{flex:0 1 760px}
 .warn{background:#fff4d6;border-left:4px solid #e0a800;padding:.5em}.note{color:#666}
 """
 
 
-def build_report(run_dir: Path, scene=None, out_dir: Path | None = None, states: dict[str, str] | None = None) -> ReportPaths:
+def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
+                 states: dict[str, str] | None = None) -> ReportPaths:
     """Write report.html (self-contained) and report.md (+ img/) into `out_dir` (default <run>/report/).
 
     `states` (stage -> up-to-date / stale / missing / skipped, from Engine.plan) adds a column
@@ -318,9 +607,28 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None, states:
     name = scene.name if scene is not None else run_dir.name
     doc.h(1, f"pano-pipe report: {name}")
     doc.p(f"run folder {run_dir} · generated {datetime.now(timezone.utc):%Y-%m-%d %H:%M UTC}", "note")
+    camera_labels: list[str] = []
+
+    # -- files: model, videos, configuration, logs (relative links: the report moves with the run)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    params = stage_params(run_dir)
+    config_path = out_dir / "config.yaml"
+    config_path.unlink(missing_ok=True)  # never link a stale one
+    if params:
+        write_config_yaml(config_path, params, name)
+    link_items = run_links(run_dir, out_dir, config_path)
+    doc.h(2, "Files", "files")
+    if link_items:
+        sections.append("files")
+        doc.links(link_items)
+    else:
+        doc.p("No files of the run yet (model, videos, configuration, run log).", "warn")
+    links = [href for href, _ in link_items]
 
     # -- metrics
     ev = read_artifact(run_dir, "evaluate")
+    from evaluation.visuals import DEPTH_ERROR_UNITS, DEPTH_UNITS, ERROR_UNITS, ERROR_VMAX
+
     doc.h(2, "Test metrics", "metrics")
     if ev is None:
         doc.p("No evaluation yet: run `pano-pipe run all SCENE` (or `pano-pipe run evaluate SCENE`).", "warn")
@@ -329,10 +637,7 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None, states:
         d = ev["data"]
         if d.get("on_train_views"):
             doc.p("The scene has no test views: these numbers are measured on the TRAINING views.", "warn")
-        keys = [k for k in METRIC_LABELS if any(v.get(k) is not None for v in d["views"])]
-        rows = [[v["view"], *[_fmt(v.get(k)) for k in keys]] for v in d["views"]]
-        rows.append(["mean", *[_fmt(d["mean"].get(k)) for k in keys]])
-        doc.table(["view", *[METRIC_LABELS[k] for k in keys]], rows)
+        per_view_table(doc, d)
         if not d.get("lpips_available"):
             doc.p(f"LPIPS unavailable: {d.get('lpips_reason')}", "warn")
         h, w = d["resolution"]
@@ -345,15 +650,18 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None, states:
         # -- per view
         doc.h(2, "Views: ground truth / render / error / depth", "views")
         sections.append("views")
-        edir = run_dir / "evaluate"
-        from evaluation.visuals import ERROR_VMAX
-
+        doc.p("Every false-colour map has its colour bar, with units and range, under it. Error maps: "
+              f"{ERROR_UNITS}, inferno, fixed scale 0 … {ERROR_VMAX:g} so they compare across views and runs. "
+              f"Depth: {DEPTH_UNITS}, turbo, 0 … the rendered depth's 99th percentile (ground-truth depth on "
+              "the same scale); black = nothing rendered / no depth. Depth error: "
+              f"{DEPTH_ERROR_UNITS}, inferno, 0 … its 99th percentile; grey = no ground truth.", "note")
+        scene_views = {sv.name: sv for sv in scene.views} if scene is not None else {}
         for v in d["views"]:
             doc.h(3, f"{v['view']} — PSNR {v['psnr']:.2f} dB, SSIM {v['ssim']:.3f}")
-            items = [(edir / v["gt"], "ground truth"), (edir / v["render"], "render"),
-                     (edir / v["error"], f"|error| (0 … {ERROR_VMAX})"), (edir / v["depth"], "depth")]
-            items = [(pth, c) for pth, c in items if pth.is_file()]
+            items, notes = view_images(run_dir / "evaluate", v, scene, scene_views.get(v["view"]), img_dir)
             doc.images(items, f"view-{v['view']}")
+            for n in notes:
+                doc.p(n, "note")
 
     # -- training curves
     tr = read_artifact(run_dir, "train")
@@ -373,32 +681,69 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None, states:
         ]
         doc.table(["setting", "value"], summary)
         series = training_series(read_jsonl(run_dir / "train" / td.get("log", "train_log.jsonl")))
+        final_test = None
+        if ev is not None and isinstance(ev["data"].get("mean", {}).get("psnr"), (int, float)):
+            last_it = td.get("iterations")
+            if not isinstance(last_it, (int, float)):
+                its = series.get("iteration")
+                last_it = float(np.nanmax(its)) if its is not None and np.isfinite(its).any() else 0.0
+            n = len(ev["data"].get("views", []))
+            label = (f"{ev['data'].get('split', 'test')} PSNR after training (evaluate, mean of {n} "
+                     f"view{'s' if n != 1 else ''})")
+            final_test = (float(last_it), float(ev["data"]["mean"]["psnr"]), label)
         curves = img_dir / "training_curves.png"
-        if plot_training_curves(series, curves):
+        labels = plot_training_curves(series, curves, final_test) if series else []
+        if labels:
             sections.append("training")
-            doc.images([(curves, "training curves: against iteration (top) and wall time (bottom)")], "training")
+            doc.images([(curves, "loss and PSNR against iteration")], "training")
+            if "test_psnr" not in series:
+                doc.p("The training log records no periodic test evaluation: test PSNR is measured only at "
+                      "the end, by the evaluate stage (the star)." if final_test else
+                      "The training log records no periodic test evaluation, and there is no evaluation yet: "
+                      "the chart shows training PSNR only.", "note")
+            extra = img_dir / "training_extra.png"
+            if plot_training_extra(series, extra):
+                doc.images([(extra, "# Gaussians against iteration; loss and PSNR against wall time")], "training")
         else:
-            doc.p("The training log holds no loss / PSNR / Gaussian-count records.", "warn")
+            doc.p("The training log holds no loss / PSNR records.", "warn")
 
     # -- floor plan
     doc.h(2, "Floor plan and cameras", "floorplan")
     un = read_artifact(run_dir, "union")
-    plan = img_dir / "floor_plan.png"
-    drawn = False
-    if un is not None and (run_dir / "union" / un["data"].get("drawing", "floor_plan.png")).is_file():
-        shutil.copyfile(run_dir / "union" / un["data"]["drawing"], plan)
-        area = un["data"].get("area_m2")
-        doc.p(f"Merged floor plan from the union stage ({_fmt(area)} m²) with the camera positions.")
-        drawn = True
-    elif draw_floor_plan_fallback(scene, plan):
+    plan = img_dir / "floorplan.png"
+    union_png = run_dir / "union" / un["data"].get("drawing", "floor_plan.png") if un is not None else None
+    labels = plot_floor_plan(scene, plan, un["data"].get("rooms") if un is not None else None)
+    camera_labels[:] = labels
+    drawn = bool(labels)
+    if drawn and un is not None:
+        doc.p(f"Merged floor plan from the union stage ({_fmt(un['data'].get('area_m2'))} m²), every camera "
+              f"of the scene (train and test) from its poses.")
+    elif drawn:
         doc.p("No union artifact (layout skipped or not run): cameras from the scene's poses, "
               "over the ground-truth rooms where the scene has them.", "note")
+    elif union_png is not None and union_png.is_file():
+        shutil.copyfile(union_png, plan)  # no scene given: the union stage's own drawing
+        doc.p(f"Merged floor plan from the union stage ({_fmt(un['data'].get('area_m2'))} m²) with the "
+              "training cameras (no scene given: test cameras not drawn).")
         drawn = True
     if drawn:
         sections.append("floorplan")
         doc.images([(plan, "floor plan with cameras")], "floorplan")
+        if labels:
+            doc.p("Cameras: " + ", ".join(f"{v.name} ({v.split})" for v in scene.views) + ".", "note")
     else:
         doc.p("No floor plan: run the union stage.", "warn")
+
+    # -- configuration
+    doc.h(2, "Configuration", "config")
+    if params:
+        sections.append("config")
+        doc.p("The parameters each stage ran with (its artifact's meta.params); the same as YAML in "
+              "config.yaml beside this report.")
+        doc.table(["stage", "parameter", "value"],
+                  [[st, k, v] for st, p in params.items() for k, v in (flatten_params(p) or [("(none recorded)", "")])])
+    else:
+        doc.p("No stage artifact records its parameters yet.", "warn")
 
     # -- durations
     doc.h(2, "Stage durations", "durations")
@@ -420,14 +765,14 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None, states:
         doc.p("No stage has run in this folder.", "warn")
 
     # -- experiments, when `pano-pipe ablate` / `sweep` have written into this run folder
-    for sub, name, title in (("ablate", "ablation", "Ablation"), ("sweep", "sweep", "Accuracy vs cost sweep")):
-        doc_json = run_dir / sub / f"{name}.json"
-        chart = run_dir / sub / f"{name}.png"
+    for sub, stem, title in (("ablate", "ablation", "Ablation"), ("sweep", "sweep", "Accuracy vs cost sweep")):
+        doc_json = run_dir / sub / f"{stem}.json"
+        chart = run_dir / sub / f"{stem}.png"
         if not (doc_json.is_file() and chart.is_file()):
             continue
         doc.h(2, title, sub)
         sections.append(sub)
-        md_file = run_dir / sub / f"{name}.md"
+        md_file = run_dir / sub / f"{stem}.md"
         table = [ln for ln in md_file.read_text().splitlines() if ln.startswith("|")] if md_file.is_file() else []
         if len(table) > 2:
             cells = [[c.strip() for c in ln.strip("|").split("|")] for ln in table]
@@ -437,7 +782,7 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None, states:
                 doc.p(note)
         except ValueError:
             pass
-        doc.images([(chart, f"{name} ({sub}/{name}.md)")], sub)
+        doc.images([(chart, f"{stem} ({sub}/{stem}.md)")], sub)
 
     out_dir.mkdir(parents=True, exist_ok=True)
     page = (
@@ -450,4 +795,4 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None, states:
     md_path = out_dir / "report.md"
     html_path.write_text(page, encoding="utf-8")
     md_path.write_text("\n".join(doc.md).lstrip() + "\n", encoding="utf-8")
-    return ReportPaths(html_path, md_path, out_dir, sections)
+    return ReportPaths(html_path, md_path, out_dir, sections, camera_labels, links)

@@ -443,6 +443,7 @@ def _register_commands() -> None:
     from evaluation.commands import ablate_command, render_command, report_command, sweep_command
     from layoutnet.command import export_layout_model_command
     from simulate.command import simulate_command
+    from viewer.command import view_command
 
     app.command("simulate")(user_errors(simulate_command))
     app.command("export-layout-model")(export_layout_model_command)
@@ -450,6 +451,7 @@ def _register_commands() -> None:
     app.command("ablate")(ablate_command)
     app.command("sweep")(sweep_command)
     app.command("render")(render_command)
+    app.command("view")(view_command)
 
 
 _register_commands()

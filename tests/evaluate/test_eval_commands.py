@@ -30,7 +30,8 @@ def test_report_command(run, sim_scene):
     r = CliRunner().invoke(app, ["report", str(sim_scene.root), "--out", str(run)])
     assert r.exit_code == 0, r.output
     html = (run / "report" / "report.html").read_text()
-    assert html.count("<img") == 7 and "Stage durations" in html
+    # one view's 6 maps + 4 colour bars, 2 training charts, floor plan, durations
+    assert html.count("<img") == 14 and "Stage durations" in html
     md = (run / "report" / "report.md").read_text()
     assert "| now |" in md  # engine states joined in
 

@@ -12,9 +12,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from evalhelpers import run_evaluate, write_train_artifact
-from evaluation.report import build_report, stage_durations, training_series
+
+from evaluation.report import (
+    build_report,
+    plot_floor_plan,
+    plot_training_curves,
+    stage_durations,
+    training_series,
+)
 
 CHROMIUM = Path("/usr/bin/chromium")
 
@@ -28,6 +34,11 @@ def run_dir(sim_scene, sim_model, tmp_path_factory):
            {"time": "t", "stage": "evaluate", "event": "ok", "duration_s": 0.5},
            {"time": "t", "stage": "layout", "event": "skipped", "reason": "no layout"}]
     (run / "run_log.jsonl").write_text("".join(json.dumps(r) + "\n" for r in log) + '{"half-written')
+    (run / "render").mkdir()
+    (run / "render" / "flythrough-train-pano.mp4").write_bytes(b"not really a video")
+    art = json.loads((run / "train" / "artifact.json").read_text())
+    art["meta"]["params"] = {"iterations": 50, "preset": "fast", "lr": {"means": 0.00016}, "background": None}
+    (run / "train" / "artifact.json").write_text(json.dumps(art))
     return run
 
 
@@ -37,14 +48,16 @@ def report(run_dir, sim_scene):
 
 
 def test_report_has_every_section(report):
-    assert report.sections == ["metrics", "views", "training", "floorplan", "durations"]
+    assert report.sections == ["files", "metrics", "views", "training", "floorplan", "config", "durations"]
     md = report.markdown.read_text()
-    for heading in ("Test metrics", "Views", "Training", "Floor plan", "Stage durations"):
+    for heading in ("Files", "Test metrics", "Views", "Training", "Floor plan", "Configuration", "Stage durations"):
         assert heading in md
     assert "LPIPS unavailable: disabled" in md
     # every image the Markdown names lies beside it and is a PNG
     names = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)
-    assert len(names) == 4 + 1 + 1 + 1  # one view's 4 images, curves, floor plan, durations
+    # one view: gt, render, error, depth, gt depth, depth error + 4 colour bars; 2 training charts,
+    # floor plan, durations
+    assert len(names) == 10 + 2 + 1 + 1
     assert len(set(names)) == len(names)  # gt / render / error / depth are four files, not one
     for n in names:
         assert cv2.imread(str(report.folder / n)) is not None, n
@@ -84,13 +97,14 @@ def _chromium(args: list[str], tmp: Path, timeout: int = 90) -> subprocess.Compl
 @pytest.mark.skipif(not CHROMIUM.exists(), reason="/usr/bin/chromium absent (Debian package 'chromium'; make installs it)")
 def test_html_renders_in_headless_chromium(report, tmp_path):
     url = report.html.resolve().as_uri()
-    # No external resource at all: the page must stand alone.
+    # Every image embedded: the page stands alone; its only hrefs are relative links to the run's files.
     page = report.html.read_text()
-    assert not re.search(r"""(src|href)=["'](?!data:)""", page)
+    assert not re.search(r"""src=["'](?!data:)""", page)
+    assert not re.search(r"""href=["'](?![^"':]+["'])""", page)  # no scheme, nothing absolute
     dom = _chromium(["--dump-dom", url], tmp_path)
     assert dom.returncode == 0, dom.stderr[-2000:]
     imgs = re.findall(r"<img[^>]*>", dom.stdout)
-    assert len(imgs) == 7
+    assert len(imgs) == 14
     for tag in imgs:
         m = re.search(r'src="data:image/png;base64,([^"]+)"', tag)
         assert m, tag[:200]
@@ -126,5 +140,103 @@ def test_report_includes_experiments_when_present(run_dir, sim_scene, tmp_path):
     rep = build_report(run, sim_scene)
     assert rep.sections[-1] == "ablate"
     html = rep.html.read_text()
-    assert html.count("<img") == 8 and "improves on 3D-GS* by +2.00 dB" in html
+    assert html.count("<img") == 15 and "improves on 3D-GS* by +2.00 dB" in html
     assert "<td>12.00 ± 0.00</td>" in html
+
+
+# ----------------------------------------------------------------------------- colour bars, depth, cameras, links
+
+
+def test_report_false_colour_maps_have_colour_bars_with_units(report):
+    page = report.html.read_text()
+    bars = re.findall(r'<img class="cbar" alt="colour bar: ([^"]+)"', page)
+    # error, rendered depth, ground-truth depth, depth error
+    assert len(bars) == 4
+    assert any("image intensity" in b and "0 … 0.25" in b for b in bars)
+    assert sum("distance along the ray (m)" in b for b in bars) == 2
+    assert any("depth| (m)" in b for b in bars)
+    for b in bars:
+        assert re.search(r"\d … \d", b), b  # its range
+    md = report.markdown.read_text()
+    for kind in ("error", "depth", "gt-depth", "depth-error"):
+        png = report.folder / "img" / f"view-test_00-colorbar-{kind}.png"
+        assert cv2.imread(str(png)) is not None and f"img/{png.name}" in md
+
+
+def test_ground_truth_depth_maps_only_where_gt_exists(report, run_dir, sim_scene, tmp_path):
+    img = report.folder / "img"
+    assert (img / "view-test_00-gt-depth.png").is_file() and (img / "view-test_00-depth-error.png").is_file()
+    assert "Depth error over" in report.markdown.read_text()
+    # the same run reported against a scene without ground-truth depth
+    views = [v.model_copy(update={"gt_depth": None}) for v in sim_scene.manifest.views]
+    no_gt = sim_scene.model_copy(update={"manifest": sim_scene.manifest.model_copy(update={"views": views})})
+    rep = build_report(run_dir, no_gt, out_dir=tmp_path / "rep")
+    names = {p.name for p in (rep.folder / "img").iterdir()}
+    assert "view-test_00-gt-depth.png" not in names and "view-test_00-depth-error.png" not in names
+    assert "view-test_00-colorbar-depth.png" in names  # the rendered depth keeps its bar
+    md = rep.markdown.read_text()
+    assert "|depth error|" not in md.replace("\\|", "|") and "Depth error over" not in md
+
+
+def test_floor_plan_labels_every_camera(report, sim_scene, tmp_path):
+    names = [v.name for v in sim_scene.views]
+    assert {v.split for v in sim_scene.views} == {"train", "test"}
+    assert report.camera_labels == names
+    md = report.markdown.read_text()
+    assert all(f"{v.name} ({v.split})" in md for v in sim_scene.views)
+    rooms = [{"polygon": [[-2, -2], [2, -2], [2, 2], [-2, 2]], "holes": []}]
+    assert plot_floor_plan(sim_scene, tmp_path / "p.png", rooms) == names
+    assert cv2.imread(str(tmp_path / "p.png")) is not None
+    assert plot_floor_plan(None, tmp_path / "q.png") == [] and not (tmp_path / "q.png").exists()
+
+
+def test_training_chart_test_psnr(report, tmp_path):
+    md = report.markdown.read_text()
+    assert "test PSNR is measured only at the end" in md
+    assert "img/training_curves.png" in md
+    shape = cv2.imread(str(report.folder / "img" / "training_curves.png")).shape
+    assert shape[1] >= 1000  # big enough to read
+    # a log with periodic test evaluations: plotted as their own line, no "only at the end"
+    recs = [{"iteration": i, "loss": 1.0 / i, "psnr": 10.0 + i, **({"test_psnr": 9.0 + i} if i % 5 == 0 else {})}
+            for i in range(1, 21)]
+    labels = plot_training_curves(training_series(recs), tmp_path / "c.png", (20.0, 28.0, "final test"))
+    assert "test PSNR (periodic)" in labels and "final test" in labels and "training loss" in labels
+    assert plot_training_curves({}, tmp_path / "none.png") == []
+
+
+def test_report_links_resolve_and_move_with_the_run(report, run_dir, sim_scene, tmp_path):
+    import yaml
+
+    page = report.html.read_text()
+    hrefs = re.findall(r'href="([^"]+)"', page)
+    assert hrefs == report.links
+    assert "../train/point_cloud.ply" in hrefs and "../render/flythrough-train-pano.mp4" in hrefs
+    assert "config.yaml" in hrefs and "../run_log.jsonl" in hrefs
+    md = report.markdown.read_text()
+    for h in hrefs:
+        assert (report.folder / h).is_file(), h
+        assert f"]({h})" in md
+    cfg = yaml.safe_load((report.folder / "config.yaml").read_text())
+    assert cfg["stages"]["train"]["iterations"] == 50 and cfg["stages"]["train"]["lr"] == {"means": 0.00016}
+    assert "| train | lr.means | 0.00016 |" in md and "| train | preset | fast |" in md
+    # move the run folder (report included): every link still resolves
+    moved = tmp_path / "elsewhere" / "run"
+    shutil.copytree(run_dir, moved)
+    for h in hrefs:
+        assert (moved / "report" / h).is_file(), h
+
+
+def test_per_view_table_lists_each_view(run_dir, sim_scene, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(run_dir, run)
+    path = run / "evaluate" / "artifact.json"
+    art = json.loads(path.read_text())
+    first = art["data"]["views"][0]
+    first["psnr"] = 35.0
+    art["data"]["views"].append({**first, "view": "test_01", "psnr": 19.0, "ssim": 0.5})
+    path.write_text(json.dumps(art))
+    md = build_report(run, sim_scene).markdown.read_text()
+    rows = [ln for ln in md.splitlines() if ln.startswith("| test_0")]
+    assert [r.split("|")[1].strip() for r in rows] == ["test_00", "test_01"]
+    assert "| 35 |" in rows[0] and "| 19 |" in rows[1]
+    assert "best test_00 35.00 dB, worst test_01 19.00 dB (16.00 dB apart)" in md

@@ -1,0 +1,1 @@
+"""`pano-pipe view`: a browser viewer (viser) of a run folder; see docs/viewer.md."""

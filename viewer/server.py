@@ -1,0 +1,257 @@
+"""The viser server behind `pano-pipe view`: build it for a run folder, get a handle, stop it.
+
+Layers (GUI toggles): the trained Gaussians (viser's client-side splat renderer), the cameras
+(train and test frustums with their names; a click flies the browser camera there), the floor
+plan (union stage) and the layout cloud (sampling stage). A button renders the current viewpoint
+as an equirectangular panorama with the project's renderer and saves it under RUN/view/.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from viewer.data import (
+    MODEL_PATH,
+    CameraView,
+    Target,
+    floor_plan_segments,
+    layout_cloud,
+    level_pose,
+    scene_cameras,
+    splats_from_model,
+)
+
+#: Colours of the camera frustums (RGB).
+TRAIN_COLOUR = (30, 110, 230)
+TEST_COLOUR = (230, 120, 20)
+PLAN_COLOUR = (220, 30, 30)
+VIEW_FOLDER = "view"
+
+
+def _wxyz(rot: np.ndarray) -> np.ndarray:
+    import viser.transforms as tf
+
+    return tf.SO3.from_matrix(np.asarray(rot, dtype=np.float64)).wxyz
+
+
+@dataclass
+class Panorama:
+    path: Path
+    image: np.ndarray  # float32 RGB [H, 2H, 3] in [0,1]
+    pose: np.ndarray  # the (levelled) camera-to-world it was rendered from
+    seconds: float
+
+
+@dataclass
+class ViewerHandle:
+    """A running viewer. `stop()` shuts the server down (idempotent)."""
+
+    server: object  # viser.ViserServer
+    run_dir: Path
+    url: str
+    model: object  # gaussians.Gaussians (on `device`)
+    device: str
+    cameras: list[CameraView]
+    layers: dict[str, object] = field(default_factory=dict)  # toggle name -> GUI checkbox
+    nodes: dict[str, list] = field(default_factory=dict)  # toggle name -> scene handles
+    pano_height: object = None  # GUI slider
+    render_button: object = None
+    pano_image: object = None  # GUI image, made on the first render
+    last_panorama: Panorama | None = None
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+    _stopped: bool = False
+
+    @property
+    def port(self) -> int:
+        return int(self.server.get_port())
+
+    def set_layer(self, name: str, visible: bool) -> None:
+        """Show or hide one layer ("gaussians", "cameras", "floor plan", "layout cloud")."""
+        for node in self.nodes.get(name, []):
+            node.visible = bool(visible)
+
+    def fly_to(self, client, c2w: np.ndarray, seconds: float = 0.4, steps: int = 12) -> None:
+        """Move `client`'s camera to the pose c2w (OpenCV axes, as viser's), eased over `seconds`."""
+        import viser.transforms as tf
+
+        cam = client.camera
+        c2w = np.asarray(c2w, dtype=np.float64)
+        target = tf.SE3.from_rotation_and_translation(tf.SO3.from_matrix(c2w[:3, :3]), c2w[:3, 3])
+        start = tf.SE3.from_rotation_and_translation(tf.SO3(np.asarray(cam.wxyz)), np.asarray(cam.position))
+        delta = (start.inverse() @ target).log()
+        for i in range(1, max(1, steps) + 1):
+            t = i / max(1, steps)
+            t = t * t * (3 - 2 * t)  # smoothstep
+            pose = start @ tf.SE3.exp(delta * t)
+            with client.atomic():
+                cam.wxyz = pose.rotation().wxyz
+                cam.position = pose.translation()
+            if i < steps:
+                time.sleep(seconds / steps)
+
+    def render_panorama(self, c2w: np.ndarray, height: int = 512, level: bool = True) -> Panorama:
+        """Render an equirectangular panorama (2:1) from c2w with the project's renderer, save it
+        as RUN/view/panorama_NNNN.png (+ .json with its pose) and show it in the GUI."""
+        from evaluation.model_io import equirect_camera, render_pose
+        from panogeom.images import write_rgb
+
+        height = max(2, int(height))
+        pose = level_pose(c2w) if level else np.asarray(c2w, dtype=np.float64)
+        with self._lock:
+            out = render_pose(self.model, pose, equirect_camera(height, 2 * height))
+            folder = self.run_dir / VIEW_FOLDER
+            folder.mkdir(parents=True, exist_ok=True)
+            n = 1 + max([int(p.stem.split("_")[-1]) for p in folder.glob("panorama_[0-9][0-9][0-9][0-9].png")]
+                        or [0])
+            path = folder / f"panorama_{n:04d}.png"
+            write_rgb(path, out.image)
+            path.with_suffix(".json").write_text(json.dumps(
+                {"pose_c2w": pose.tolist(), "height": height, "width": 2 * height,
+                 "backend": out.backend, "seconds": out.seconds}, indent=1))
+        pano = Panorama(path, out.image, pose, out.seconds)
+        self.last_panorama = pano
+        if not self._stopped:
+            self._show(pano)
+        return pano
+
+    def _show(self, pano: Panorama) -> None:
+        img = (np.clip(pano.image, 0, 1) * 255 + 0.5).astype(np.uint8)
+        if self.pano_image is None:
+            self.pano_image = self.server.gui.add_image(img, label=pano.path.name, format="jpeg")
+        else:
+            self.pano_image.image = img
+            self.pano_image.label = pano.path.name
+
+    def stop(self) -> None:
+        if not self._stopped:
+            self._stopped = True
+            self.server.stop()
+
+
+def start_viewer(target: Target, host: str = "127.0.0.1", port: int = 8080, pano_height: int = 512,
+                 device: str | None = None) -> ViewerHandle:
+    """Load the run folder's model and layers, start a viser server on host:port, return its handle."""
+    import torch
+    import viser
+
+    from evaluation.model_io import load_model
+
+    run_dir = Path(target.run_dir)
+    if device is None:
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    model = load_model(run_dir / MODEL_PATH, device=device)
+    splats = splats_from_model(model)
+    cameras = scene_cameras(target.scene)
+
+    server = viser.ViserServer(host=host, port=port, verbose=False)
+    server.gui.configure_theme(control_width="medium")
+    server.scene.set_up_direction("-y")  # the world is y down: no data are rotated
+    h = ViewerHandle(server=server, run_dir=run_dir, url=f"http://{_url_host(host)}:{server.get_port()}",
+                     model=model, device=device, cameras=cameras)
+
+    # initial viewpoint: the first training camera (inside the room), else above the splats' centre
+    train = [c for c in cameras if c.split == "train"] or cameras
+    if train:
+        c2w = train[0].c2w
+        server.initial_camera.position = tuple(c2w[:3, 3])
+        server.initial_camera.look_at = tuple(c2w[:3, 3] + c2w[:3, 2])
+    elif len(splats):
+        centre = np.median(splats.centers, axis=0)
+        server.initial_camera.position = tuple(centre + np.array([0.0, -3.0, -3.0]))
+        server.initial_camera.look_at = tuple(centre)
+    server.initial_camera.up = (0.0, -1.0, 0.0)
+
+    # -- layers
+    h.nodes["gaussians"] = [server.scene.add_gaussian_splats(
+        "/gaussians", centers=splats.centers, covariances=splats.covariances, rgbs=splats.rgbs,
+        opacities=splats.opacities)]
+    cam_nodes = []
+    for cam in cameras:
+        colour = TRAIN_COLOUR if cam.split == "train" else TEST_COLOUR
+        name = f"/cameras/{cam.split}/{cam.name}"
+        frustum = server.scene.add_camera_frustum(
+            name, fov=np.pi / 2, aspect=2.0, scale=0.15, color=colour,
+            wxyz=_wxyz(cam.c2w[:3, :3]), position=cam.c2w[:3, 3])
+        label = server.scene.add_label(f"{name}/label", f"{cam.name} ({cam.split})", position=(0.0, 0.0, 0.0))
+        frustum.on_click(_flyer(h, cam))
+        cam_nodes += [frustum, label]
+    h.nodes["cameras"] = cam_nodes
+    segs = floor_plan_segments(run_dir)
+    if segs is not None:
+        h.nodes["floor plan"] = [server.scene.add_line_segments(
+            "/floor_plan", points=segs, colors=PLAN_COLOUR, thickness=3.0, thickness_units="screen")]
+    cloud = layout_cloud(run_dir)
+    if cloud is not None:
+        h.nodes["layout cloud"] = [server.scene.add_point_cloud(
+            "/layout_cloud", points=cloud[0], colors=cloud[1], point_size=0.015, visible=False)]
+
+    # -- GUI
+    server.gui.add_markdown(f"**pano-pipe view** · `{run_dir.name}` · {len(splats)} Gaussians")
+    with server.gui.add_folder("Layers"):
+        defaults = {"gaussians": True, "cameras": True, "floor plan": True, "layout cloud": False}
+        for name in ("gaussians", "cameras", "floor plan", "layout cloud"):
+            available = name in h.nodes
+            box = server.gui.add_checkbox(name if available else f"{name} (not in run)",
+                                          initial_value=defaults[name] and available, disabled=not available)
+            box.on_update(_toggler(h, name, box))
+            h.layers[name] = box
+    if cameras:
+        with server.gui.add_folder("Go to camera"):
+            for cam in cameras:
+                btn = server.gui.add_button(f"{cam.name} ({cam.split})")
+                btn.on_click(_flyer(h, cam))
+    with server.gui.add_folder("Panorama"):
+        h.pano_height = server.gui.add_slider("height (px)", min=64, max=2048, step=64,
+                                              initial_value=int(np.clip(pano_height, 64, 2048)))
+        h.render_button = server.gui.add_button("Render 360° panorama here")
+        status = server.gui.add_markdown("Renders the current viewpoint (levelled) and saves it to "
+                                         f"`{run_dir.name}/{VIEW_FOLDER}/`.")
+        h.render_button.on_click(_renderer(h, status))
+    return h
+
+
+def _url_host(host: str) -> str:
+    return "localhost" if host in ("0.0.0.0", "::", "") else host
+
+
+def _flyer(h: ViewerHandle, cam: CameraView):
+    def callback(event) -> None:
+        if event.client is not None:
+            h.fly_to(event.client, cam.c2w)
+
+    return callback
+
+
+def _toggler(h: ViewerHandle, name: str, box):
+    def callback(_event) -> None:
+        h.set_layer(name, box.value)
+
+    return callback
+
+
+def _renderer(h: ViewerHandle, status):
+    def callback(event) -> None:
+        client = event.client
+        if client is None:
+            return
+        c2w = np.eye(4)
+        c2w[:3, :3] = __import__("viser").transforms.SO3(np.asarray(client.camera.wxyz)).as_matrix()
+        c2w[:3, 3] = client.camera.position
+        h.render_button.disabled = True
+        status.content = "Rendering…"
+        try:
+            pano = h.render_panorama(c2w, int(h.pano_height.value))
+            status.content = (f"Saved `{h.run_dir.name}/{VIEW_FOLDER}/{pano.path.name}` "
+                              f"({pano.image.shape[1]}×{pano.image.shape[0]}, {pano.seconds:.2f} s).")
+        except Exception as exc:  # a failed render must not kill the server
+            status.content = f"Render failed: {type(exc).__name__}: {exc}"
+        finally:
+            h.render_button.disabled = False
+
+    return callback
