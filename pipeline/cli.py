@@ -442,6 +442,7 @@ def _register_commands() -> None:
     """Commands that live beside the package they drive."""
     from evaluation.commands import ablate_command, render_command, report_command, sweep_command
     from layoutnet.command import export_layout_model_command
+    from export.command import export_command
     from simulate.command import simulate_command
     from viewer.command import view_command
 
@@ -452,6 +453,7 @@ def _register_commands() -> None:
     app.command("sweep")(sweep_command)
     app.command("render")(render_command)
     app.command("view")(view_command)
+    app.command("export")(export_command)
 
 
 _register_commands()
