@@ -4,14 +4,13 @@ failures that stay in their scene, reruns that run nothing, Ctrl-C."""
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 
 import batch.scheduler as scheduler
 from batch.executors import LocalExecutor
 from batch.scheduler import run_batch
-from pipeline import cli
+from tests.clitools import invoke
 from pipeline.registry import build_registry
 from tests.batch.conftest import FAST, FAST_SET
 
@@ -19,18 +18,7 @@ STAGES = list(build_registry())
 
 
 def run_cli(args, capsys) -> tuple[int, str, str]:
-    old = sys.argv
-    sys.argv = ["pano-pipe", *map(str, args)]
-    try:
-        try:
-            cli.main()
-            code = 0
-        except SystemExit as e:
-            code = e.code
-    finally:
-        sys.argv = old
-    cap = capsys.readouterr()
-    return code, cap.out, cap.err
+    return invoke(args, capsys)
 
 
 def events(run_dir: Path) -> list[dict]:

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from pipeline import cli
+from tests.clitools import invoke
 from pipeline.console import PlainProgress
 from simulate.generate import generate_scene
 
@@ -18,18 +19,7 @@ FAST = ["--set", "train.iterations=5", "--set", "train.height=8", "--set", "eval
 
 
 def run_cli(args, capsys) -> tuple[int, str, str]:
-    old = sys.argv
-    sys.argv = ["pano-pipe", *map(str, args)]
-    try:
-        try:
-            cli.main()
-            code = 0
-        except SystemExit as e:
-            code = e.code
-    finally:
-        sys.argv = old
-    cap = capsys.readouterr()
-    return code, cap.out, cap.err
+    return invoke(args, capsys)
 
 
 @pytest.fixture(scope="module")

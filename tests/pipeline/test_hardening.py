@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from pipeline import cli
+from tests.clitools import invoke
 from pipeline.fsutil import run_folder_lock
 from simulate.generate import generate_scene
 
@@ -26,19 +27,9 @@ FAST = ["--set", "train.iterations=5", "--set", "train.height=8"]
 
 
 def run_cli(args: list[str], capsys) -> tuple[int, str]:
-    """The console entry point in-process: (exit code, stderr). Reports go to stdout."""
-    old = sys.argv
-    sys.argv = ["pano-pipe", *map(str, args)]
-    try:
-        try:
-            cli.main()
-            code = 0
-        except SystemExit as e:
-            code = e.code
-    finally:
-        sys.argv = old
-        cli._state["debug"] = False
-    return code, capsys.readouterr().err
+    """(exit code, stderr): reports go to stdout."""
+    code, _, err = invoke(args, capsys)
+    return code, err
 
 
 def assert_one_line(code: int, out: str, *expected: str) -> None:

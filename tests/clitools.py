@@ -1,0 +1,24 @@
+"""The console entry point run in-process, as a user's shell would run it."""
+
+from __future__ import annotations
+
+import sys
+
+from pipeline import cli
+
+
+def invoke(args, capsys) -> tuple[int, str, str]:
+    """`pano-pipe ARGS` in this process: (exit code, stdout, stderr)."""
+    old = sys.argv
+    sys.argv = ["pano-pipe", *map(str, args)]
+    try:
+        try:
+            cli.main()
+            code = 0
+        except SystemExit as e:
+            code = e.code
+    finally:
+        sys.argv = old
+        cli._state["debug"] = False
+    cap = capsys.readouterr()
+    return code, cap.out, cap.err
