@@ -60,10 +60,16 @@ def _check_pair(a: np.ndarray, b: np.ndarray) -> None:
         raise ValueError(f"expected [H,W] or [H,W,C], got shape {a.shape}")
 
 
-def psnr(pred, gt, max_val: float = 1.0) -> float:
+def _valid(err: np.ndarray, mask) -> np.ndarray:
+    """The per-pixel errors of the valid pixels (`mask` [H,W] bool; None = all)."""
+    return err if mask is None else err[np.asarray(mask, dtype=bool)]
+
+
+def psnr(pred, gt, max_val: float = 1.0, mask=None) -> float:
+    """PSNR in dB over the valid pixels of `mask` ([H,W] bool, None = all)."""
     a, b = _np(pred), _np(gt)
     _check_pair(a, b)
-    mse = float(np.mean((a - b) ** 2))
+    mse = float(np.mean(_valid((a - b) ** 2, mask)))
     return 10.0 * math.log10(max_val**2 / max(mse, _MIN_MSE))
 
 
@@ -73,15 +79,17 @@ def latitude_weights(height: int) -> np.ndarray:
     return np.cos(theta)
 
 
-def ws_psnr(pred, gt, max_val: float = 1.0) -> float:
-    """Weighted-to-spherically-uniform PSNR for equirectangular images."""
+def ws_psnr(pred, gt, max_val: float = 1.0, mask=None) -> float:
+    """Weighted-to-spherically-uniform PSNR for equirectangular images (over `mask`'s valid pixels)."""
     a, b = _np(pred), _np(gt)
     _check_pair(a, b)
     err = (a - b) ** 2
     if err.ndim == 3:
         err = err.mean(axis=2)
-    w = latitude_weights(a.shape[0])[:, None]
-    wmse = float((err * w).sum() / (w.sum() * a.shape[1]))
+    w = np.broadcast_to(latitude_weights(a.shape[0])[:, None], err.shape)
+    if mask is not None:
+        w = w * np.asarray(mask, dtype=bool)
+    wmse = float((err * w).sum() / max(w.sum(), 1e-300))
     return 10.0 * math.log10(max_val**2 / max(wmse, _MIN_MSE))
 
 
@@ -92,10 +100,14 @@ def gaussian_window(size: int = 11, sigma: float = 1.5) -> np.ndarray:
     return g / g.sum()
 
 
-def ssim(pred, gt, window: int = 11, sigma: float = 1.5, max_val: float = 1.0) -> float:
-    """Mean SSIM, 3DGS style (Gaussian window, zero padding, same-size maps)."""
+def ssim(pred, gt, window: int = 11, sigma: float = 1.5, max_val: float = 1.0, mask=None) -> float:
+    """Mean SSIM, 3DGS style (Gaussian window, zero padding, same-size maps). With `mask`: masked
+    pixels zeroed in both images (their content has no effect), the map averaged over valid ones."""
     a, b = _np(pred), _np(gt)
     _check_pair(a, b)
+    if mask is not None:
+        keep = np.asarray(mask, dtype=bool)
+        a, b = a * (keep[..., None] if a.ndim == 3 else keep), b * (keep[..., None] if b.ndim == 3 else keep)
     if a.ndim == 2:
         a, b = a[..., None], b[..., None]
     x = torch.from_numpy(a).permute(2, 0, 1)[None]  # [1,C,H,W] float64
@@ -114,6 +126,8 @@ def ssim(pred, gt, window: int = 11, sigma: float = 1.5, max_val: float = 1.0) -
     sxy = blur(x * y) - mu_x * mu_y
     c1, c2 = (0.01 * max_val) ** 2, (0.03 * max_val) ** 2
     m = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
+    if mask is not None:
+        return float(_valid(m.mean(dim=1)[0].numpy(), mask).mean())
     return float(m.mean())
 
 

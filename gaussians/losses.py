@@ -15,8 +15,12 @@ __all__ = ["l1_loss", "ssim", "psnr", "layout_loss", "photometric_loss", "LAYOUT
 LAYOUT_EPS = 1e-12
 
 
-def l1_loss(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    return (pred - gt).abs().mean()
+def l1_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean |pred − gt| of [H,W,3] images, over the valid pixels of `mask` ([H,W] bool) if given."""
+    if mask is None:
+        return (pred - gt).abs().mean()
+    m = mask[..., None].to(pred.dtype)
+    return ((pred - gt).abs() * m).sum() / (3.0 * m.sum()).clamp_min(1.0)  # no valid pixel: 0, not 0/0
 
 
 _WINDOWS: dict[tuple, torch.Tensor] = {}
@@ -40,9 +44,14 @@ def _blur(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return F.conv2d(x, w.transpose(2, 3), padding=(pad, 0), groups=c)
 
 
-def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5,
+         mask: torch.Tensor | None = None) -> torch.Tensor:
     """Mean SSIM of two [H,W,3] (or [B,3,H,W]) images in [0,1], as the 3DGS code computes it
-    (Gaussian window, zero padding)."""
+    (Gaussian window, zero padding). With `mask` ([H,W] bool): masked-out pixels are zeroed in
+    both images (their content has no effect) and the map is averaged over valid pixels only."""
+    if mask is not None:
+        m = mask[..., None].to(pred.dtype)
+        pred, gt = pred * m, gt * m
     if pred.ndim == 3:
         pred = pred.permute(2, 0, 1)[None]
         gt = gt.permute(2, 0, 1)[None]
@@ -55,12 +64,15 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 
     s1, s2, s12 = e11 - mu1_sq, e22 - mu2_sq, e12 - mu12
     c1, c2 = 0.01**2, 0.03**2
     m = ((2 * mu12 + c1) * (2 * s12 + c2)) / ((mu1_sq + mu2_sq + c1) * (s1 + s2 + c2))
+    if mask is not None:
+        return (m.mean(dim=1)[0] * mask.to(m.dtype)).sum() / mask.sum().clamp_min(1)
     return m.mean()
 
 
-def psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
-    """PSNR in dB of images in [0,1] (pred clamped to [0,1])."""
-    mse = float(((pred.detach().clamp(0, 1) - gt) ** 2).mean())
+def psnr(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> float:
+    """PSNR in dB of images in [0,1] (pred clamped to [0,1]), over `mask`'s valid pixels if given."""
+    err = (pred.detach().clamp(0, 1) - gt) ** 2
+    mse = float(err.mean() if mask is None or not bool(mask.any()) else err[mask].mean())
     return 10.0 * math.log10(1.0 / max(mse, 1e-12))
 
 
@@ -84,9 +96,9 @@ def layout_loss(means: torch.Tensor, u0: torch.Tensor, normals: torch.Tensor, ma
     return (num / (nn * dn)).mean()
 
 
-def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_l1: float = 0.8,
-                     lambda_dssim: float = 0.2) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(λ1·L1 + λ2·(1−SSIM), L1, SSIM) of [H,W,3] images."""
-    l1 = l1_loss(pred, gt)
-    s = ssim(pred, gt) if lambda_dssim > 0 else pred.new_tensor(1.0)
+def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_l1: float = 0.8, lambda_dssim: float = 0.2,
+                     mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(λ1·L1 + λ2·(1−SSIM), L1, SSIM) of [H,W,3] images, over `mask`'s valid pixels if given."""
+    l1 = l1_loss(pred, gt, mask)
+    s = ssim(pred, gt, mask=mask) if lambda_dssim > 0 else pred.new_tensor(1.0)
     return lambda_l1 * l1 + lambda_dssim * (1.0 - s), l1, s

@@ -98,6 +98,8 @@ class TrainView:
     image: torch.Tensor  # [H,W,3] float in [0,1]
     viewmat: torch.Tensor  # [4,4] world-to-camera
     camera: object
+    #: [H,W] bool, the pixels the losses use (a tripod or hand masked out); None = every pixel
+    mask: torch.Tensor | None = None
 
 
 def scene_extent(points: np.ndarray | torch.Tensor, low: float = 1.0, high: float = 99.0) -> float:
@@ -170,7 +172,7 @@ class Trainer:
         out = render(g, view.viewmat, view.camera, backend=cfg.backend, background=self._bg,
                      sh_degree=self.active_sh)
         pred = out.image
-        photo, l1, s = photometric_loss(pred, view.image, cfg.lambda_l1, cfg.lambda_dssim)
+        photo, l1, s = photometric_loss(pred, view.image, cfg.lambda_l1, cfg.lambda_dssim, mask=view.mask)
         loss = photo
         lay = None
         if cfg.layout_reg and cfg.lambda_layout > 0 and bool(g.is_layout.any()):
@@ -214,7 +216,7 @@ class Trainer:
                     reset_opacity(self.g, self.opt)
 
         lv = float(loss.detach())
-        p = psnr(pred, view.image)
+        p = psnr(pred, view.image, view.mask)
         self.ema.update(lv, p)
         self.last_loss = lv
         self._in_step = False
@@ -275,7 +277,7 @@ class Trainer:
         for v in views or self.views:
             out = render(self.g, v.viewmat, v.camera, backend=self.cfg.backend, background=self._bg,
                          sh_degree=self.active_sh)
-            vals.append(psnr(out.image, v.image))
+            vals.append(psnr(out.image, v.image, v.mask))
         return float(np.mean(vals))
 
     def final_gaussians(self) -> Gaussians:

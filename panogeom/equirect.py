@@ -74,3 +74,11 @@ def ray_directions(height: int, width: int) -> np.ndarray:
     """[H,W,3] unit ray directions in the camera frame."""
     phi, theta = pixel_grid_angles(height, width)
     return angles_to_dirs(phi, theta)
+
+
+def nadir_cap(height: int, width: int, radius_deg: float) -> np.ndarray:
+    """[H,W] bool, True outside a cap of `radius_deg` around the nadir (the bottom of the image):
+    the pixels a tripod or a hand at the nadir leaves valid. 0 masks nothing."""
+    theta = row_latitudes(height)  # +pi/2 at the top row, -pi/2 at the bottom
+    valid_rows = theta > -np.pi / 2 + np.deg2rad(radius_deg)
+    return np.broadcast_to(valid_rows[:, None], (height, width)).copy()

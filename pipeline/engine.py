@@ -164,7 +164,7 @@ def select_stages(registry: dict[str, StageSpec], target: str | None = None, unt
 
 
 #: The manifest field of a view that names its file of each scene input kind.
-_KIND_FIELDS = {"images": "image", "layout": "layout", "depth": "depth", "gt": "gt_depth"}
+_KIND_FIELDS = {"images": "image", "layout": "layout", "depth": "depth", "gt": "gt_depth", "masks": "mask"}
 
 
 class Engine:
@@ -216,7 +216,8 @@ class Engine:
         # only the manifest fields of the kinds read: naming a depth file must not rerun layout
         unread = {field for kind, field in _KIND_FIELDS.items() if kind not in kinds}
         manifest = self.scene.manifest.model_dump(
-            mode="json", exclude={"views", "name"} | ({"floor_plan"} if "gt" not in kinds else set()))
+            mode="json", exclude={"views", "name"} | ({"floor_plan"} if "gt" not in kinds else set())
+            | ({"nadir_mask_deg"} if "masks" not in kinds else set()))
         manifest["views"] = [v.model_dump(mode="json", exclude=unread) for v in views]
         parts = [sha256_json(manifest)]
         for kind in sorted(kinds):
@@ -236,6 +237,8 @@ class Engine:
             files = [s.layout_path(v) for v in views]
         elif kind == "depth":
             files = [s.depth_path(v) for v in views]
+        elif kind == "masks":
+            files = [s.mask_path(v) for v in views]
         elif kind == "gt":
             files = [s.gt_depth_path(v) for v in views]
             if s.manifest.floor_plan:

@@ -56,19 +56,19 @@ def build_registry() -> dict[str, StageSpec]:
         ),
         StageSpec(
             "align", align.Params, align.Output, align.run, reads_views=train_views,
-            inputs={"depth": True, "layout": False, "sampling": False}, scene_inputs=("images",),
+            inputs={"depth": True, "layout": False, "sampling": False}, scene_inputs=("images", "masks"),
             code=("stages.align", "stages.cloud_io", "panogeom"),
             description="depth clouds scaled to the layout and merged with it (open3d)",
         ),
         StageSpec(
             "train", train.Params, train.Output, train.run, reads_views=train_views,
-            inputs={"align": False, "sampling": False, "union": False}, scene_inputs=("images",),
+            inputs={"align": False, "sampling": False, "union": False}, scene_inputs=("images", "masks"),
             code=("stages.train", "stages.cloud_io", "gaussians", "splatting"),
             description="360° Gaussian splatting optimisation", resources=torch_resources,
         ),
         StageSpec(
             "evaluate", evaluate.Params, evaluate.Output, evaluate.run,
-            inputs={"train": True, "union": False}, scene_inputs=("images", "gt"),
+            inputs={"train": True, "union": False}, scene_inputs=("images", "gt", "masks"),
             code=("stages.evaluate", "evaluation", "gaussians", "splatting"),
             description="metrics on the held-out views", resources=torch_resources,
         ),

@@ -6,10 +6,11 @@ import os
 from pathlib import Path
 
 import cv2
+import numpy as np
 from pydantic import ValidationError
 
 from pipeline.errors import PanoError, describe_validation_error, read_json
-from schemas.scene import Scene, SceneManifest
+from schemas.scene import Scene, SceneManifest, View
 
 #: Images over this many megapixels are refused before decoding (a 20000x10000 PNG of zeros is
 #: 583 KB on disk and 600 MB decoded). `--max-megapixels` or PANO_PIPE_MAX_MEGAPIXELS change it.
@@ -50,14 +51,16 @@ def load_scene(root: str | Path, check_images: bool = True) -> Scene:
     limit = max_megapixels()
     for i, view in enumerate(manifest.views):
         files = {"layout": scene.layout_path(view), "depth": scene.depth_path(view),
-                 "gt_depth": scene.gt_depth_path(view)}
+                 "gt_depth": scene.gt_depth_path(view), "mask": scene.mask_path(view)}
         for field, path in files.items():
             if getattr(view, field) and not path.is_file():
                 raise PanoError(path, f"missing (named by scene.json views.{i}.{field})")
             if path is not None and path.suffix.lower() == ".png":
                 check_image_size(path, limit, min_height=1)
         if check_images:
-            check_panorama(scene.image_path(view), f"scene.json views.{i}.image", limit)
+            size = check_panorama(scene.image_path(view), f"scene.json views.{i}.image", limit)
+            if files["mask"] is not None:
+                read_mask(files["mask"], size)  # a bad mask fails now, before any stage runs
     if manifest.floor_plan:
         scene.path(manifest.floor_plan, "scene.json floor_plan")
     return scene
@@ -112,3 +115,45 @@ def check_panorama(path: Path, named_by: str, limit_mp: float | None = None) -> 
     if img.ndim == 3 and img.shape[2] not in (3, 4):
         raise PanoError(path, f"image has {img.shape[2]} channels; expected grey, RGB or RGBA")
     return h, w
+
+
+def read_mask(path: Path, image_size: tuple[int, int]) -> np.ndarray:
+    """A mask file as [H,W] bool (non-zero = valid) at its image's size `image_size` (H, W);
+    unreadable, of another size, or masking out everything: a one-line PanoError."""
+    m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if m is None:
+        raise PanoError(path, "unreadable mask (not a format OpenCV can decode)")
+    if m.shape[:2] != tuple(image_size):
+        raise PanoError(path, f"mask is {m.shape[1]}x{m.shape[0]}, its panorama {image_size[1]}x{image_size[0]}; "
+                              "a mask has its image's size")
+    valid = (m if m.ndim == 2 else m[..., :3].max(axis=2)) > 0
+    if not valid.any():
+        raise PanoError(path, "the mask leaves no valid pixel (non-zero = valid)")
+    return valid
+
+
+def valid_mask(scene: Scene, view: View, height: int, width: int) -> np.ndarray | None:
+    """The pixels of `view` at (height, width) that training, depth back-projection and metrics
+    use: its mask file (resized, nearest) and the scene's nadir cap. None when every pixel is."""
+    from panogeom.equirect import nadir_cap
+
+    mask = None
+    path = scene.mask_path(view)
+    if path is not None:
+        native = image_size(scene.image_path(view))
+        full = read_mask(path, native if native is not None else _decoded_size(scene.image_path(view)))
+        mask = cv2.resize(full.astype(np.uint8), (width, height), interpolation=cv2.INTER_NEAREST) > 0
+    if scene.manifest.nadir_mask_deg > 0:
+        cap = nadir_cap(height, width, scene.manifest.nadir_mask_deg)
+        mask = cap if mask is None else mask & cap
+    if mask is not None and not mask.any():
+        raise PanoError(path or scene.root / "scene.json", f"view {view.name!r}: no valid pixel left at "
+                                                          f"{width}x{height} (mask and nadir_mask_deg)")
+    return mask
+
+
+def _decoded_size(path: Path) -> tuple[int, int]:
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise PanoError(path, "unreadable image (not a format OpenCV can decode)")
+    return img.shape[:2]

@@ -23,6 +23,8 @@ class ViewMetrics(BaseModel):
     error: str = Field(description="Per-pixel |render − gt| colour map (PNG).")
     depth: str = Field(description="Rendered expected depth, colour mapped (PNG).")
     depth_npy: str = Field(description="Rendered expected depth in metres, float32 [H,W] (.npy).")
+    mask: str | None = Field(default=None, description="The pixels left out of every metric: the view's mask "
+                                                       "file and/or the nadir cap; None = all pixels used.")
 
 
 class EvaluateOutput(BaseModel):

@@ -41,13 +41,16 @@ class View(BaseModel):
     gt_depth: str | None = Field(
         default=None, description="Ground-truth depth (.npy metres) for evaluation only; never used to train."
     )
+    mask: str | None = Field(
+        default=None, description="Valid-pixel mask (.png, non-zero = valid; resized to any working size); "
+                                  "found as masks/<view>.png when not named.")
 
     @field_validator("name")
     @classmethod
     def _safe_name(cls, name: str) -> str:
         return safe_stem(name)
 
-    @field_validator("image", "layout", "depth", "gt_depth")
+    @field_validator("image", "layout", "depth", "gt_depth", "mask")
     @classmethod
     def _inside_scene(cls, rel: str | None) -> str | None:
         return None if rel is None else safe_relative(rel)
@@ -94,6 +97,10 @@ class SceneManifest(BaseModel):
     floor_plan: str | None = Field(
         default=None, description="Ground-truth floor plan JSON (simulator), for evaluation only."
     )
+    nadir_mask_deg: float = Field(
+        default=0.0, ge=0.0, le=90.0,
+        description="A cap of this angular radius around every view's nadir (tripod, hand) is left out of "
+                    "training, depth back-projection and metrics; 0 = off.")
 
     @field_validator("name")
     @classmethod
@@ -163,6 +170,12 @@ class Scene(BaseModel):
         if view.depth:
             return self.path(view.depth, f"view {view.name!r} depth")
         return self._first_existing("depth", view.name, DEPTH_SUFFIXES)
+
+    def mask_path(self, view: View) -> Path | None:
+        """The view's mask file: named in the manifest, else found as masks/<view>.png."""
+        if view.mask:
+            return self.path(view.mask, f"view {view.name!r} mask")
+        return self._first_existing("masks", view.name, (".png",))
 
     def gt_depth_path(self, view: View) -> Path | None:
         return self.path(view.gt_depth, f"view {view.name!r} gt_depth") if view.gt_depth else None

@@ -31,6 +31,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from panogeom.equirect import angles_to_dirs, column_longitudes, row_latitudes
 from panogeom.surfaces import CEILING, FLOOR, NONE, SURFACE_NAMES, WALL
 from pipeline.errors import PanoError
+from pipeline.scene_loader import valid_mask
 from pipeline.stage import StageContext
 from schemas.align import AlignOutput, KindFit
 from schemas.scene import Scene
@@ -434,6 +435,9 @@ def run(ctx: StageContext[Params]) -> AlignOutput:
         if values.ndim != 2:
             raise PanoError(path, f"expected an [H,W] depth map, got shape {list(values.shape)}")
         view = ctx.scene.manifest.view(vd.view)
+        mask = valid_mask(ctx.scene, view, *values.shape)
+        if mask is not None:  # a tripod or hand: neither fitted nor back-projected
+            values = np.where(mask, values, np.nan).astype(np.float32)
         views.append(_ViewData(vd.view, vd.kind, values, view.pose_matrix, ctx.scene.image_path(view), path))
 
     layout_views = {}

@@ -27,6 +27,7 @@ from evaluation.model_io import equirect_camera, load_model, render_pose
 from evaluation.visuals import depth_rgb, error_rgb
 from panogeom.images import read_rgb, write_rgb
 from pipeline.errors import PanoError, load_npy
+from pipeline.scene_loader import valid_mask
 from pipeline.stage import StageContext
 from schemas.evaluate import EvaluateOutput, ViewMetrics
 from schemas.scene import Scene, View
@@ -73,13 +74,28 @@ def skip_reason(scene: Scene, params: Params) -> str | None:
 # ----------------------------------------------------------------------------- pure helpers
 
 
-def view_metrics(render: np.ndarray, gt: np.ndarray, lpips_model=None) -> dict[str, float | None]:
-    """PSNR / SSIM / WS-PSNR (and LPIPS with a model) of one rendered panorama."""
+def describe_mask(scene, view) -> str | None:
+    """Which pixels a view's metrics leave out, in words (None: none)."""
+    parts = []
+    path = scene.mask_path(view)
+    if path is not None:
+        parts.append(path.relative_to(scene.root).as_posix() if path.is_relative_to(scene.root) else str(path))
+    if scene.manifest.nadir_mask_deg > 0:
+        parts.append(f"nadir cap {scene.manifest.nadir_mask_deg:g}°")
+    return " + ".join(parts) or None
+
+
+def view_metrics(render: np.ndarray, gt: np.ndarray, lpips_model=None, mask: np.ndarray | None = None
+                 ) -> dict[str, float | None]:
+    """PSNR / SSIM / WS-PSNR (and LPIPS with a model) of one rendered panorama, over the valid
+    pixels of `mask` ([H,W] bool; None = all). LPIPS sees both images with masked pixels zeroed."""
+    keep = None if mask is None else mask[..., None]
     return {
-        "psnr": M.psnr(render, gt),
-        "ssim": M.ssim(render, gt),
-        "ws_psnr": M.ws_psnr(render, gt),
-        "lpips": lpips_model.distance(render, gt) if lpips_model is not None else None,
+        "psnr": M.psnr(render, gt, mask=mask),
+        "ssim": M.ssim(render, gt, mask=mask),
+        "ws_psnr": M.ws_psnr(render, gt, mask=mask),
+        "lpips": (lpips_model.distance(render if keep is None else render * keep, gt if keep is None else gt * keep)
+                  if lpips_model is not None else None),
     }
 
 
@@ -198,12 +214,13 @@ def run(ctx: StageContext) -> EvaluateOutput:
             gt = read_rgb(img_path, size=size)
             r = render_pose(g, v.pose_matrix, equirect_camera(*size), backend=p.backend, background=background)
             backend = r.backend
-            m = view_metrics(r.image, gt, lpips_model)
+            mask = valid_mask(ctx.scene, v, *size)
+            m = view_metrics(r.image, gt, lpips_model, mask)
             row = {"view": v.name, "split": split, **m, "render_seconds": r.seconds}
             gt_depth_path = ctx.scene.gt_depth_path(v)
             dm = None
             if gt_depth_path is not None and gt_depth_path.is_file():
-                dm = M.depth_metrics(r.depth, load_gt_depth(gt_depth_path, size))
+                dm = M.depth_metrics(r.depth, load_gt_depth(gt_depth_path, size), mask)
                 row["depth_abs_rel"] = dm["abs_rel"] if dm["count"] else None
                 row["depth_rmse"] = dm["rmse"] if dm["count"] else None
             names = {k: f"{k}/{v.name}.png" for k in ("gt", "renders", "errors", "depth")}
@@ -219,7 +236,7 @@ def run(ctx: StageContext) -> EvaluateOutput:
                     depth_abs_rel=row.get("depth_abs_rel"), depth_rmse=row.get("depth_rmse"),
                     depth_valid_pixels=dm["count"] if dm else None, render_seconds=r.seconds,
                     gt=names["gt"], render=names["renders"], error=names["errors"], depth=names["depth"],
-                    depth_npy=f"depth/{v.name}.npy",
+                    depth_npy=f"depth/{v.name}.npy", mask=describe_mask(ctx.scene, v),
                 )
             )
 

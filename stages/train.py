@@ -29,6 +29,7 @@ from gaussians.trainer import CHECKPOINT_NAME, Trainer, TrainConfig, TrainView, 
 from panogeom.equirect import angles_to_pixel, dirs_to_angles
 from panogeom.images import read_rgb
 from pipeline.errors import PanoError
+from pipeline.scene_loader import valid_mask
 from pipeline.stage import StageContext
 from schemas.scene import Scene, View
 from schemas.train import TrainOutput
@@ -183,21 +184,33 @@ def cube_face_image(pano: np.ndarray, face_viewmat: np.ndarray, camera) -> np.nd
     return cv2.remap(padded, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
-def build_views(images: dict[str, np.ndarray], viewmats: dict[str, np.ndarray], projection: str) -> list[TrainView]:
-    """Training views: one equirectangular view per panorama, or six cube faces (face = W/4)."""
+def build_views(images: dict[str, np.ndarray], viewmats: dict[str, np.ndarray], projection: str,
+                masks: dict[str, np.ndarray | None] | None = None) -> list[TrainView]:
+    """Training views: one equirectangular view per panorama, or six cube faces (face = W/4);
+    `masks` ([H,W] bool per view, None = all valid) are resampled to the faces like the images."""
     import splatting
 
     out = []
     for name, img in images.items():
         vm = torch.as_tensor(viewmats[name], dtype=torch.float32)
         h, w = img.shape[:2]
+        mask = (masks or {}).get(name)
         if projection == "360":
             out.append(TrainView(name, torch.from_numpy(np.ascontiguousarray(img)), vm,
-                                 splatting.EquirectCamera(h, w)))
+                                 splatting.EquirectCamera(h, w),
+                                 None if mask is None else torch.from_numpy(np.ascontiguousarray(mask))))
             continue
         for face, (fv, cam) in zip(splatting.CUBEMAP_FACE_NAMES, splatting.cubemap_faces(max(w // 4, 2))):
             gt = cube_face_image(img, fv.numpy(), cam)
-            out.append(TrainView(f"{name}/{face}", torch.from_numpy(np.ascontiguousarray(gt)), fv @ vm, cam))
+            face_mask = None
+            if mask is not None:
+                # a face pixel is valid when the bilinear sample draws only on valid panorama pixels
+                m = cube_face_image(np.repeat(mask[..., None].astype(np.float32), 3, axis=2), fv.numpy(), cam)
+                face_mask = torch.from_numpy(np.ascontiguousarray(m[..., 0] > 0.999))
+                if not bool(face_mask.any()):
+                    continue  # a face wholly masked out (the nadir face under a big cap) is not trained on
+            out.append(TrainView(f"{name}/{face}", torch.from_numpy(np.ascontiguousarray(gt)), fv @ vm, cam,
+                                 face_mask))
     return out
 
 
@@ -233,6 +246,8 @@ def init_fingerprint(g: Gaussians, views: list[TrainView]) -> str:
         h.update(v.name.encode())
         h.update(v.image.contiguous().numpy().tobytes())
         h.update(v.viewmat.contiguous().numpy().tobytes())
+        if v.mask is not None:
+            h.update(v.mask.contiguous().numpy().tobytes())
     return h.hexdigest()[:16]
 
 
@@ -345,7 +360,8 @@ def run(ctx: StageContext) -> TrainOutput:
     views = ctx.scene.manifest.train_views()
     height = int(p.resolved("height"))
     images = load_images(ctx.scene, views, height, warn=ctx.warn)
-    train_views = build_views(images, {v.name: v.viewmat for v in views}, p.projection)
+    masks = {v.name: valid_mask(ctx.scene, v, height, 2 * height) for v in views}
+    train_views = build_views(images, {v.name: v.viewmat for v in views}, p.projection, masks)
     g, init = initial_gaussians(ctx, p, views)
     extent = p.extent if p.extent is not None else scene_extent(g.means)
     cfg = make_config(p, len(views), extent)
