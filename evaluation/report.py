@@ -410,6 +410,9 @@ def per_view_table(doc: _Doc, d: dict) -> None:
         worst = min(scored, key=lambda v: v["psnr"])
         doc.p(f"Per view: best {best['view']} {best['psnr']:.2f} dB, worst {worst['view']} "
               f"{worst['psnr']:.2f} dB ({best['psnr'] - worst['psnr']:.2f} dB apart).")
+    masked = [f"{v['view']}: {v['mask']}" for v in views if v.get("mask")]
+    if masked:  # which pixels the metrics leave out (docs/conventions.md, Masks)
+        doc.p("Metrics over valid pixels only; masks applied: " + "; ".join(masked) + ".")
 
 
 def view_images(edir: Path, v: dict, scene, view, img_dir: Path) -> tuple[list[tuple], list[str]]:

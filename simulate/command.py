@@ -9,7 +9,10 @@ import typer
 from simulate.effects import EFFECTS
 from simulate.generate import PRESETS, SimulationResult, generate_scene
 
-PHASE_ORDER = ("scene", "raycast", "furniture", "texture", "shading", "aa", "noise", "layout", "write")
+PHASE_ORDER = (
+    "scene", "raycast", "furniture", "texture", "shading", "aa",
+    "tripod", "exposure", "noise", "layout", "write",
+)
 PHASE_HELP = {
     "scene": "room, doorways, lights, cameras",
     "raycast": "ground-truth pass: one ray per pixel centre (shell)",
@@ -17,7 +20,9 @@ PHASE_HELP = {
     "texture": "procedural albedo",
     "shading": "normals + Lambertian ceiling lights",
     "aa": "extra N x N sub-pixel rays (shell) + box filter",
-    "noise": "exposure + sensor noise",
+    "tripod": "dark blob at the nadir (tripod / hand) + its mask",
+    "exposure": "per-view gain + white balance",
+    "noise": "sensor noise",
     "layout": "gt layout boundaries + HorizonNet corners",
     "write": "PNG / npy / JSON files",
     "other": "colour look-ups, clipping, bookkeeping",
@@ -53,7 +58,8 @@ def simulate_command(
     height: int = typer.Option(256, "--height", help="Image height in pixels (width = 2 x height)."),
     seed: int = typer.Option(0, "--seed", help="Random seed (the scene is deterministic for a seed)."),
     effects: str = typer.Option(
-        "all", "--effects", help=f"Comma-separated effects from {', '.join(EFFECTS)}, or 'all' / 'none'."
+        "all", "--effects", help=f"Comma-separated effects from {', '.join(EFFECTS)}, or 'all' / 'none' "
+        "('all' for the demo preset: texture, furniture, shading, aa).",
     ),
     aa_samples: int = typer.Option(2, "--aa-samples", help="Anti-aliasing: N x N samples per pixel."),
     with_layout: bool = typer.Option(

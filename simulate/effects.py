@@ -3,9 +3,14 @@
 The renderer calls these functions through this module (`effects.texture(...)`),
 so a test can replace them and count calls. Without an effect, nothing in this
 module runs for it: `texture` off gives flat per-material albedo (a table
-look-up in render.py), `shading` off gives the albedo unlit, `noise` off writes
-the rendered image as is, `aa` off casts one ray per pixel centre, and
-`furniture` off leaves the room empty.
+look-up in render.py), `shading` off gives the albedo unlit, `tripod`,
+`exposure` and `noise` off write the rendered image as is, `aa` off casts one
+ray per pixel centre, and `furniture` off leaves the room empty.
+
+The capture effects (`tripod`, `exposure`, `noise`) act on the rendered image,
+in that order: the tripod is an object in front of the lens (so it is exposed
+and gets sensor noise like the rest), then the camera's exposure and white
+balance, then its sensor noise.
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ from shapely.prepared import prep
 from panogeom.equirect import column_longitudes, row_latitudes
 from simulate.geometry import FURNITURE_CAMERA_CLEARANCE, Box, Camera, World
 
-EFFECTS = ("texture", "furniture", "shading", "noise", "aa")
+EFFECTS = ("texture", "furniture", "shading", "noise", "exposure", "tripod", "aa")
 
 # Mean albedo of each material: also the flat colour used when `texture` is off.
 MATERIAL_RGB = {
@@ -162,12 +167,99 @@ def shading(points: np.ndarray, normals: np.ndarray, world: World) -> np.ndarray
 
 
 def noise(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Per-view exposure change (gain 0.8..1.2) and sensor noise (shot + read), image in [0,1]."""
-    gain = float(np.exp(rng.uniform(np.log(0.8), np.log(1.2))))
-    img = image * gain
-    sigma = np.sqrt(0.004**2 + (0.012**2) * img)
-    img = img + sigma * rng.standard_normal(img.shape)
+    """Sensor noise (shot + read), sigma = sqrt(0.004^2 + 0.012^2 I), image in [0,1].
+    Exposure and white balance are the separate `exposure` effect."""
+    sigma = np.sqrt(0.004**2 + (0.012**2) * np.clip(image, 0.0, None))
+    img = image + sigma * rng.standard_normal(image.shape)
     return np.clip(img, 0.0, 1.0)
+
+
+# ----------------------------------------------------------------------------- exposure
+
+EXPOSURE_GAIN = (0.75, 1.25)  # per-view gain, log-uniform
+WHITE_BALANCE = 0.08  # red and blue gains relative to green, uniform in [1 - x, 1 + x]
+
+
+def exposure(image: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
+    """Per-view exposure and white balance: image x gain x (wb_r, 1, wb_b), clipped to [0,1].
+
+    Returns the image and its parameters {"gain", "white_balance": [r, g, b] (g = 1),
+    "channel_gains": gain x white_balance} (RGB order, the image's channel order)."""
+    gain = float(np.exp(rng.uniform(np.log(EXPOSURE_GAIN[0]), np.log(EXPOSURE_GAIN[1]))))
+    wr, wb = (float(v) for v in rng.uniform(1.0 - WHITE_BALANCE, 1.0 + WHITE_BALANCE, 2))
+    white = [wr, 1.0, wb]
+    channel = [gain * c for c in white]
+    img = np.clip(image * np.asarray(channel, dtype=image.dtype), 0.0, 1.0)
+    return img, {"gain": gain, "white_balance": white, "channel_gains": channel}
+
+
+# ----------------------------------------------------------------------------- tripod
+
+TRIPOD_RADIUS_DEG = (11.0, 16.0)  # mean angular radius of the blob around the nadir
+# The boundary never leaves this band (19.5 deg from the nadir = the bottom 10.8 % of rows).
+TRIPOD_CLIP_DEG = (8.0, 19.5)
+
+
+def _value_noise(x: np.ndarray, y: np.ndarray, cell: float, seed: int) -> np.ndarray:
+    """Smooth value noise in [0,1): hashed lattice values, smoothstep-interpolated."""
+    gx, gy = x / cell, y / cell
+    i0, j0 = np.floor(gx), np.floor(gy)
+    fx, fy = gx - i0, gy - j0
+    fx, fy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)
+    v00, v10 = _hash(i0, j0, seed), _hash(i0 + 1, j0, seed)
+    v01, v11 = _hash(i0, j0 + 1, seed), _hash(i0 + 1, j0 + 1, seed)
+    return (v00 * (1 - fx) + v10 * fx) * (1 - fy) + (v01 * (1 - fx) + v11 * fx) * fy
+
+
+def tripod(image: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A tripod / hand at the nadir: a dark, roughly textured blob, different per view.
+
+    Its boundary, as an angle from the nadir per image column (longitude phi), is
+    r(phi) = r0 (1 + offset, elongation, three legs and rough harmonics), r0 uniform in
+    TRIPOD_RADIUS_DEG, clipped to TRIPOD_CLIP_DEG. Pixels whose centre lies within r(phi)
+    of the nadir are covered (a one-row soft edge inside the boundary); nothing outside
+    changes. Returns the image and the valid mask [H,W] uint8 (255 = valid, 0 = tripod)."""
+    h, w = image.shape[:2]
+    # Draw every parameter up front (a fixed number of draws per view).
+    r0 = np.deg2rad(rng.uniform(*TRIPOD_RADIUS_DEG))
+    offset, elong, legs = rng.uniform(0.0, 0.12), rng.uniform(0.0, 0.15), rng.uniform(0.03, 0.10)
+    ph = rng.uniform(-np.pi, np.pi, 3)
+    rough_k = np.arange(4, 10)
+    rough_a = rng.normal(0.0, 0.015, len(rough_k))
+    rough_p = rng.uniform(-np.pi, np.pi, len(rough_k))
+    grey = rng.uniform(0.05, 0.12)
+    tint = 1.0 + rng.uniform(-0.12, 0.12, 3)
+    seed = int(rng.integers(0, 1 << 20))
+
+    lon = column_longitudes(w)
+    shape = (
+        1.0
+        + offset * np.cos(lon - ph[0])
+        + elong * np.cos(2 * (lon - ph[1]))
+        + legs * np.cos(3 * (lon - ph[2]))
+        + (rough_a[:, None] * np.cos(rough_k[:, None] * lon[None, :] + rough_p[:, None])).sum(axis=0)
+    )
+    radius = np.clip(r0 * shape, *np.deg2rad(TRIPOD_CLIP_DEG))  # [W]
+    pix = np.pi / h  # one row, in radians
+    n = min(h, int(np.ceil(radius.max() / pix)) + 1)  # rows that can be covered
+    rows = np.arange(h - n, h)
+    alpha_nadir = (h - rows - 0.5) * pix  # angle of each row's pixel centres from the nadir
+    cover = np.clip((radius[None, :] - alpha_nadir[:, None]) / pix, 0.0, 1.0)  # > 0 iff inside
+
+    # Texture in the plane around the nadir (degrees): two octaves of value noise, darker legs.
+    a_deg = np.rad2deg(alpha_nadir)[:, None]
+    x, y = a_deg * np.sin(lon)[None, :], a_deg * np.cos(lon)[None, :]
+    rough = 0.55 + 0.6 * _value_noise(x, y, 2.5, seed) + 0.3 * _value_noise(x, y, 0.8, seed + 1)
+    leg = np.cos(1.5 * (lon - ph[2])) ** 2  # 1 along the three legs (period 2 pi / 3)
+    rough *= 1.0 - 0.35 * (leg ** 8)[None, :]
+    colour = grey * rough[..., None] * tint[None, None, :]
+
+    out = image.copy()
+    band = out[h - n :]
+    out[h - n :] = band * (1.0 - cover[..., None]) + cover[..., None] * colour.astype(out.dtype)
+    mask = np.full((h, w), 255, dtype=np.uint8)
+    mask[h - n :][cover > 0] = 0
+    return out, mask
 
 
 # ----------------------------------------------------------------------------- aa

@@ -20,7 +20,8 @@ from simulate.render import render_view
 
 PRESETS = PRESET_NAMES
 EFFECTS = fxmod.EFFECTS
-# What "all" means for each preset: the demo is noise-free (it must be learnable).
+# What "all" means for each preset: the demo is noise-free and capture-effect-free (it must be
+# learnable, and its figures stay as they are); the others get every effect.
 PRESET_ALL_EFFECTS = {p: frozenset(EFFECTS) for p in PRESETS}
 PRESET_ALL_EFFECTS["demo"] = frozenset({"texture", "furniture", "shading", "aa"})
 
@@ -83,7 +84,8 @@ def _check_args(preset: str, views: int, test_views: int, height: int, seed: int
 def _rngs(seed: int) -> dict[str, np.random.Generator]:
     # Independent streams, so toggling an effect never changes the room, the cameras or the other effects.
     ss = np.random.SeedSequence(int(seed))
-    names = ("room", "cameras", "furniture", "noise")
+    # New streams go at the end: spawn keys are positional, so the earlier streams never change.
+    names = ("room", "cameras", "furniture", "noise", "exposure", "tripod")
     return {n: np.random.default_rng(s) for n, s in zip(names, ss.spawn(len(names)))}
 
 
@@ -133,19 +135,31 @@ def _write_scene(
 ) -> None:
     for sub in ("images", "gt/depth", "gt/layout"):
         (tmp / sub).mkdir(parents=True, exist_ok=True)
+    if "tripod" in fx or "exposure" in fx:
+        (tmp / "gt" / "clean").mkdir()
+    if "tripod" in fx:
+        (tmp / "gt" / "masks").mkdir()
+    exposures: dict[str, dict] = {}
     if with_layout:
         (tmp / "layout").mkdir()
     if with_depth:
         (tmp / "depth").mkdir()
     views: list[View] = []
     for cam in cams:
-        r = render_view(world, boxes, cam, height, fx, aa_samples, rngs["noise"], timings)
+        r = render_view(world, boxes, cam, height, fx, aa_samples, rngs, timings)
         t0 = time.perf_counter()
         lay = view_layout(world, cam, height)
         timings["layout"] = timings.get("layout", 0.0) + time.perf_counter() - t0
         t0 = time.perf_counter()
         n = cam.name
         cv2.imwrite(str(tmp / "images" / f"{n}.png"), cv2.cvtColor(_to_u8(r.image), cv2.COLOR_RGB2BGR))
+        if r.clean is not None:
+            clean_bgr = cv2.cvtColor(_to_u8(r.clean), cv2.COLOR_RGB2BGR)
+            cv2.imwrite(str(tmp / "gt" / "clean" / f"{n}.png"), clean_bgr)
+        if r.mask is not None:
+            cv2.imwrite(str(tmp / "gt" / "masks" / f"{n}.png"), r.mask)
+        if r.exposure is not None:
+            exposures[n] = r.exposure
         depth32 = r.depth.astype(np.float32)
         np.save(tmp / "gt" / "depth" / f"{n}.npy", depth32)
         mm = np.clip(np.round(r.depth * 1000.0), 0, 65535).astype(np.uint16)
@@ -177,6 +191,13 @@ def _write_scene(
         )
         timings["write"] = timings.get("write", 0.0) + time.perf_counter() - t0
     t0 = time.perf_counter()
+    if "exposure" in fx:
+        (tmp / "gt" / "exposure.json").write_text(json.dumps({
+            "model": "images/<view>.png = clip(gt/clean/<view>.png x channel_gains) (+ sensor noise with "
+                     "`noise`; the tripod, with `tripod`, is drawn before the exposure); RGB order; "
+                     "channel_gains = gain x white_balance, white_balance green = 1",
+            "views": exposures,
+        }, indent=1))
     (tmp / "gt" / "floor_plan.json").write_text(json.dumps(_floor_plan(world, boxes, cams), indent=1))
     manifest = SceneManifest(name=name, views=views, floor_plan="gt/floor_plan.json")
     (tmp / "scene.json").write_text(manifest.model_dump_json(indent=2, exclude_none=True))

@@ -6,7 +6,9 @@ Two passes:
   * the colour pass: the same hits when `aa` is off, otherwise an n x n grid of
     float32 sub-pixel rays per pixel, box-filtered down.
 Colour = albedo (flat per material, or procedural with `texture`) times the
-irradiance (only with `shading`), then exposure and sensor noise (`noise`).
+irradiance (only with `shading`); then the capture effects, each only when
+listed: the tripod at the nadir (`tripod`), the per-view exposure and white
+balance (`exposure`), sensor noise (`noise`).
 """
 
 from __future__ import annotations
@@ -29,6 +31,9 @@ class ViewRender:
     image: np.ndarray  # [H,W,3] float in [0,1]
     depth: np.ndarray  # [H,W] float64 metres along the ray
     sid: np.ndarray  # [H,W] surface id at pixel centres
+    clean: np.ndarray | None = None  # [H,W,3] before tripod / exposure / noise (with tripod or exposure)
+    mask: np.ndarray | None = None  # [H,W] uint8, 255 = valid, 0 = tripod (when tripod is on)
+    exposure: dict | None = None  # the view's exposure parameters (when exposure is on)
 
 
 class _Materials:
@@ -106,9 +111,14 @@ def render_view(
     height: int,
     fx: set[str],
     aa_samples: int,
-    rng_noise: np.random.Generator | None,
+    rngs: dict[str, np.random.Generator] | np.random.Generator | None,
     timings: dict[str, float],
 ) -> ViewRender:
+    """Render one view. `rngs`: the per-purpose random streams ("noise", "exposure", "tripod";
+    a single Generator is used for every one of them); each is drawn from only when its
+    effect is listed in `fx`."""
+    if not isinstance(rngs, dict):
+        rngs = {"noise": rngs, "exposure": rngs, "tripod": rngs}
     h, w = height, 2 * height
     rot = cam.rotation
     origin = cam.position.astype(np.float64)
@@ -135,11 +145,25 @@ def render_view(
             aa_samples,
             timings,
         )
+    image = np.clip(image, 0.0, 1.0)
+    clean = mask = params = None
+    if "tripod" in fx or "exposure" in fx:
+        clean = image.copy()
+    if "tripod" in fx:
+        t0 = time.perf_counter()
+        image, mask = effects.tripod(image, rngs["tripod"])
+        timings["tripod"] = timings.get("tripod", 0.0) + time.perf_counter() - t0
+    if "exposure" in fx:
+        t0 = time.perf_counter()
+        image, params = effects.exposure(image, rngs["exposure"])
+        timings["exposure"] = timings.get("exposure", 0.0) + time.perf_counter() - t0
     if "noise" in fx:
         t0 = time.perf_counter()
-        image = effects.noise(image, rng_noise)
+        image = effects.noise(image, rngs["noise"])
         timings["noise"] = timings.get("noise", 0.0) + time.perf_counter() - t0
-    return ViewRender(image=np.clip(image, 0.0, 1.0), depth=depth, sid=sid)
+    return ViewRender(
+        image=np.clip(image, 0.0, 1.0), depth=depth, sid=sid, clean=clean, mask=mask, exposure=params
+    )
 
 
 def _supersampled_block(lat_s, lon_s, rot, origin, world, boxes, m, fx, timings) -> np.ndarray:

@@ -208,3 +208,17 @@ def test_align_does_not_back_project_masked_pixels(scene, capsys):
     # the cap's pixels are neither fitted nor back-projected
     assert capped["fits"][0]["num_pixels"] < full["fits"][0]["num_pixels"]
     assert depth_points(capped) < depth_points(full)
+
+
+def test_the_report_says_which_mask_was_applied(scene, capsys):
+    data = json.loads((scene / "scene.json").read_text())
+    data["nadir_mask_deg"] = 15
+    (scene / "scene.json").write_text(json.dumps(data))
+    args = ["--out", scene.parent / "R"]
+    code, out, err = invoke(["run", "all", scene, *args, "--set", "train.iterations=3", "--set", "train.height=8",
+                             "--set", "evaluate.fps_repeats=1"], capsys)
+    assert code == 0, err
+    code, out, err = invoke(["report", scene, *args], capsys)
+    assert code == 0, err
+    md = (scene.parent / "R" / "report" / "report.md").read_text()
+    assert "masks applied: test_00: nadir cap 15°" in md

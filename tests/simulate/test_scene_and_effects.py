@@ -123,7 +123,8 @@ def test_demo_preset_learnable_layout(tmp_path):
 
 class _Counter:
     def __init__(self, monkeypatch):
-        self.calls = {n: 0 for n in ("texture", "furniture", "shading", "noise", "antialias")}
+        names = ("texture", "furniture", "shading", "noise", "exposure", "tripod", "antialias")
+        self.calls = {n: 0 for n in names}
         for name in self.calls:
             original = getattr(fx, name)
             monkeypatch.setattr(fx, name, self._wrap(name, original))
@@ -144,8 +145,10 @@ class _Counter:
         ("furniture", {"furniture"}),
         ("shading", {"shading"}),
         ("noise", {"noise"}),
+        ("exposure", {"exposure"}),
+        ("tripod", {"tripod"}),
         ("aa", {"antialias"}),
-        ("all", {"texture", "furniture", "shading", "noise", "antialias"}),
+        ("all", {"texture", "furniture", "shading", "noise", "exposure", "tripod", "antialias"}),
     ],
 )
 def test_effects_off_are_never_evaluated(tmp_path, monkeypatch, effects, expected):
@@ -156,7 +159,7 @@ def test_effects_off_are_never_evaluated(tmp_path, monkeypatch, effects, expecte
     called = {k for k, v in counter.calls.items() if v > 0}
     assert called == expected
     # Only the effects that ran show up in the profile.
-    timed = set(res.timings) & {"texture", "furniture", "shading", "noise", "aa"}
+    timed = set(res.timings) & {"texture", "furniture", "shading", "noise", "exposure", "tripod", "aa"}
     assert timed == {("aa" if e == "antialias" else e) for e in expected}
 
 
@@ -193,6 +196,7 @@ def test_parse_effects():
     assert parse_effects("none") == set()
     assert parse_effects("texture, aa") == {"texture", "aa"}
     assert parse_effects({"noise"}) == {"noise"}
+    assert {"exposure", "tripod"} <= parse_effects("all")
     assert parse_effects("all", "demo") == {"texture", "furniture", "shading", "aa"}
     with pytest.raises(ValueError, match="unknown effect"):
         parse_effects("texture,blur")
@@ -295,6 +299,7 @@ def test_command_profile(tmp_path):
     )
     assert r.exit_code == 0, r.output
     assert "total" in r.output and "texture" in r.output
+    assert "tripod" in r.output and "exposure" in r.output  # 'all' includes the capture effects
     assert (out / "scene.json").is_file()
     r = CliRunner().invoke(app, [str(out), "--preset", "nope"])
     assert r.exit_code != 0 and isinstance(r.exception, ValueError)
