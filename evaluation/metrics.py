@@ -131,6 +131,29 @@ def ssim(pred, gt, window: int = 11, sigma: float = 1.5, max_val: float = 1.0, m
     return float(m.mean())
 
 
+def colour_fit(pred, gt, mask=None) -> np.ndarray:
+    """`pred` after the per-channel least-squares gain and bias that best match it to `gt` (over
+    `mask`'s valid pixels), clipped to [0, 1]: metrics on it measure the reconstruction with the
+    panorama's exposure and white balance factored out."""
+    a, b = _np(pred), _np(gt)
+    _check_pair(a, b)
+    keep = np.ones(a.shape[:2], bool) if mask is None else np.asarray(mask, dtype=bool)
+    out = np.empty_like(a)
+    for c in range(a.shape[2] if a.ndim == 3 else 1):
+        x = a[..., c] if a.ndim == 3 else a
+        y = b[..., c] if b.ndim == 3 else b
+        xs, ys = x[keep], y[keep]
+        var = float(np.var(xs)) if xs.size else 0.0
+        gain = float(np.mean((xs - xs.mean()) * (ys - ys.mean())) / var) if var > 1e-12 else 1.0
+        bias = float(ys.mean() - gain * xs.mean()) if xs.size else 0.0
+        fitted = np.clip(gain * x + bias, 0.0, 1.0)
+        if a.ndim == 3:
+            out[..., c] = fitted
+        else:
+            out = fitted
+    return out
+
+
 def error_map(pred, gt) -> np.ndarray:
     """[H,W] mean absolute error over channels, in [0, 1]."""
     a, b = _np(pred), _np(gt)

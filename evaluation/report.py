@@ -33,6 +33,8 @@ METRIC_LABELS = {
     "lpips": "LPIPS ↓",
     "depth_abs_rel": "depth AbsRel ↓",
     "depth_rmse": "depth RMSE (m) ↓",
+    "psnr_colorfit": "PSNR colour-fit (dB) ↑",
+    "ssim_colorfit": "SSIM colour-fit ↑",
 }
 
 # Key names the train log may use (the first present wins), so the report stays

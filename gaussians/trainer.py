@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gaussians.appearance import Appearance
 from gaussians.densify import DensifyStats, densify_and_prune, reset_opacity
 from gaussians.losses import layout_loss, photometric_loss, psnr
 from gaussians.model import PARAM_NAMES, Gaussians, render
@@ -39,7 +40,7 @@ from gaussians.optim import Adam, expon_lr
 __all__ = ["TrainConfig", "TrainView", "Trainer", "scene_extent", "CHECKPOINT_NAME"]
 
 CHECKPOINT_NAME = "checkpoint.pt"
-CHECKPOINT_VERSION = 2  # 2: numpy RNG state as plain data (weights_only loading)
+CHECKPOINT_VERSION = 3  # 2: numpy RNG state as plain data (weights_only loading); 3: appearance
 
 
 @dataclass
@@ -79,6 +80,10 @@ class TrainConfig:
     backend: str | None = None
     log_every: int = 10
     checkpoint_every: int = 500
+    # per-panorama appearance (gaussians/appearance.py)
+    appearance: bool = False
+    lambda_appearance: float = 0.01
+    lr_appearance: float = 1e-3
 
     def fingerprint(self) -> str:
         """What a checkpoint must match to be resumed (everything but logging/checkpoint cadence)."""
@@ -148,9 +153,21 @@ class Trainer:
         self.log_path = log_path
         self._bg = torch.tensor(cfg.background, dtype=self.g.means.dtype)
         self.last_loss: float | None = None
+        #: Per-panorama colour transforms (None: off); applied to training renders only.
+        self.appearance = self._new_appearance()
         #: Extra identity a checkpoint must match (e.g. a hash of the initial model and images).
         self.extra_fingerprint = ""
         self._in_step = False
+
+    def _new_appearance(self) -> Appearance | None:
+        if not self.cfg.appearance:
+            return None
+        names = list(dict.fromkeys(Appearance.panorama_of(v.name) for v in self.views))
+        return Appearance(names, self.cfg.lr_appearance, self.g.means.dtype)
+
+    def _as_trained(self, view: TrainView, image: torch.Tensor) -> torch.Tensor:
+        """A render as the loss sees it: through the view's appearance transform, when on."""
+        return image if self.appearance is None else self.appearance.apply(view.name, image)
 
     # -- one iteration -------------------------------------------------------
     def _next_view(self) -> TrainView:
@@ -171,9 +188,11 @@ class Trainer:
         g = self.g
         out = render(g, view.viewmat, view.camera, backend=cfg.backend, background=self._bg,
                      sh_degree=self.active_sh)
-        pred = out.image
+        pred = self._as_trained(view, out.image)
         photo, l1, s = photometric_loss(pred, view.image, cfg.lambda_l1, cfg.lambda_dssim, mask=view.mask)
         loss = photo
+        if self.appearance is not None and cfg.lambda_appearance > 0:
+            loss = loss + cfg.lambda_appearance * self.appearance.regulariser()
         lay = None
         if cfg.layout_reg and cfg.lambda_layout > 0 and bool(g.is_layout.any()):
             lay = layout_loss(g.means, g.u0, g.normals, g.is_layout)
@@ -191,6 +210,8 @@ class Trainer:
                     torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
             self.nonfinite_steps += int(bad)
             self.opt.step(g)
+            if self.appearance is not None:
+                self.appearance.step()
             Adam.zero_grad(g)
             # quaternions: keep them away from zero (the renderer copes, Adam's steps would not)
             qn = torch.linalg.vector_norm(g.quats, dim=-1, keepdim=True)
@@ -277,7 +298,7 @@ class Trainer:
         for v in views or self.views:
             out = render(self.g, v.viewmat, v.camera, backend=self.cfg.backend, background=self._bg,
                          sh_degree=self.active_sh)
-            vals.append(psnr(out.image, v.image, v.mask))
+            vals.append(psnr(self._as_trained(v, out.image), v.image, v.mask))
         return float(np.mean(vals))
 
     def final_gaussians(self) -> Gaussians:
@@ -300,6 +321,7 @@ class Trainer:
             "active_sh": self.active_sh,
             "stack": list(self.stack),
             "ema": asdict(self.ema),
+            "appearance": None if self.appearance is None else self.appearance.state_dict(),
             "records": list(self.records),
             "train_seconds": self.train_seconds,
             "nonfinite_steps": self.nonfinite_steps,
@@ -342,6 +364,7 @@ class Trainer:
         self.records = new["records"]
         self.train_seconds = new["train_seconds"]
         self.nonfinite_steps = new["nonfinite_steps"]
+        self.appearance = new["appearance"]
 
     def _checked_state(self, s: object) -> dict:
         """The trainer state a checkpoint describes, every field checked (type, shape, range)
@@ -426,6 +449,12 @@ class Trainer:
             raise ValueError("checkpoint train_seconds must be a number >= 0")
         out["train_seconds"] = float(s["train_seconds"])
         out["nonfinite_steps"] = _int_in(s["nonfinite_steps"], "nonfinite_steps", 0, None)
+        out["appearance"] = self._new_appearance()
+        if out["appearance"] is None:
+            if s["appearance"] is not None:
+                raise ValueError("checkpoint has appearance transforms, this run has appearance off")
+        else:
+            out["appearance"].load_state_dict(s["appearance"])
         return out
 
     def load_checkpoint(self, path: Path) -> None:
@@ -453,7 +482,7 @@ class Trainer:
 
 _STATE_KEYS = frozenset({
     "fingerprint", "iteration", "gaussians", "opt", "stats", "gen", "torch_rng", "np_rng", "active_sh",
-    "stack", "ema", "records", "train_seconds", "nonfinite_steps",
+    "stack", "ema", "records", "train_seconds", "nonfinite_steps", "appearance",
 })
 
 

@@ -14,6 +14,10 @@ class ViewMetrics(BaseModel):
     ssim: float
     ws_psnr: float = Field(description="PSNR with rows weighted by cos(latitude).")
     lpips: float | None = Field(default=None, description="None when LPIPS is unavailable (see lpips_reason).")
+    psnr_colorfit: float | None = Field(
+        default=None, description="PSNR after a per-channel least-squares gain and bias of the render to the "
+                                  "ground truth: exposure and white balance factored out (not the raw metric).")
+    ssim_colorfit: float | None = Field(default=None, description="SSIM after the same colour fit.")
     depth_abs_rel: float | None = Field(default=None, description="Where the scene has ground-truth depth.")
     depth_rmse: float | None = Field(default=None, description="Metres, where the scene has ground-truth depth.")
     depth_valid_pixels: int | None = None

@@ -24,3 +24,5 @@ class TrainOutput(BaseModel):
     lambda_layout: float | None = Field(default=None, description="λ3 actually used (0 with layout_reg off).")
     extent: float | None = Field(default=None, description="Scene extent (m) scaling the position learning rate.")
     resumed_from: int | None = Field(default=None, description="Iteration a --resume continued from.")
+    appearance: str | None = Field(default=None, description="appearance.json: each training panorama's "
+                                                            "learned colour gain and bias (train.appearance).")

@@ -62,9 +62,10 @@ _failed = False
 
 def _cpu_model() -> str:
     try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name") or line.startswith("flags"):
-                return line
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name") or line.startswith("flags"):
+                    return line
     except OSError:
         pass
     return platform.processor() or platform.machine()

@@ -34,7 +34,7 @@ from schemas.scene import Scene, View
 
 Output = EvaluateOutput
 
-METRIC_KEYS = ("psnr", "ssim", "ws_psnr", "lpips", "depth_abs_rel", "depth_rmse")
+METRIC_KEYS = ("psnr", "ssim", "ws_psnr", "lpips", "depth_abs_rel", "depth_rmse", "psnr_colorfit", "ssim_colorfit")
 
 
 class Params(BaseModel):
@@ -90,12 +90,15 @@ def view_metrics(render: np.ndarray, gt: np.ndarray, lpips_model=None, mask: np.
     """PSNR / SSIM / WS-PSNR (and LPIPS with a model) of one rendered panorama, over the valid
     pixels of `mask` ([H,W] bool; None = all). LPIPS sees both images with masked pixels zeroed."""
     keep = None if mask is None else mask[..., None]
+    fitted = M.colour_fit(render, gt, mask)  # exposure and white balance factored out
     return {
         "psnr": M.psnr(render, gt, mask=mask),
         "ssim": M.ssim(render, gt, mask=mask),
         "ws_psnr": M.ws_psnr(render, gt, mask=mask),
         "lpips": (lpips_model.distance(render if keep is None else render * keep, gt if keep is None else gt * keep)
                   if lpips_model is not None else None),
+        "psnr_colorfit": M.psnr(fitted, gt, mask=mask),
+        "ssim_colorfit": M.ssim(fitted, gt, mask=mask),
     }
 
 
@@ -233,6 +236,7 @@ def run(ctx: StageContext) -> EvaluateOutput:
             results.append(
                 ViewMetrics(
                     view=v.name, split=split, psnr=m["psnr"], ssim=m["ssim"], ws_psnr=m["ws_psnr"], lpips=m["lpips"],
+                    psnr_colorfit=m["psnr_colorfit"], ssim_colorfit=m["ssim_colorfit"],
                     depth_abs_rel=row.get("depth_abs_rel"), depth_rmse=row.get("depth_rmse"),
                     depth_valid_pixels=dm["count"] if dm else None, render_seconds=r.seconds,
                     gt=names["gt"], render=names["renders"], error=names["errors"], depth=names["depth"],

@@ -104,6 +104,10 @@ class Params(BaseModel):
     threads: int | None = Field(default=None, ge=1, description="torch threads (None = leave as is).")
     log_every: int = Field(default=10, ge=1)
     checkpoint_every: int = Field(default=500, ge=0, description="0 = only on Ctrl-C.")
+    appearance: bool = Field(default=False, description="A learned colour gain and bias per training panorama "
+                                                       "(exposure, white balance), applied while training only.")
+    lambda_appearance: float = Field(default=0.01, ge=0, description="Weight pulling the transforms to identity.")
+    lr_appearance: float = Field(default=1e-3, gt=0, description="Adam learning rate of the transforms.")
 
     def resolved(self, key: str):
         v = getattr(self, key)
@@ -233,6 +237,7 @@ def make_config(p: Params, num_train_views: int, extent: float) -> TrainConfig:
         max_gaussians=p.resolved("max_gaussians"),
         background=tuple(float(x) for x in p.background), seed=p.seed, backend=p.backend,
         log_every=p.log_every, checkpoint_every=p.checkpoint_every,
+        appearance=p.appearance, lambda_appearance=p.lambda_appearance, lr_appearance=p.lr_appearance,
     )
 
 
@@ -419,6 +424,8 @@ def run(ctx: StageContext) -> TrainOutput:
 
     final = trainer.final_gaussians()
     save_ply(ctx.out_dir / "point_cloud.ply", final)
+    if trainer.appearance is not None:  # for inspection: what exposure the model saw per panorama
+        (ctx.out_dir / "appearance.json").write_text(json.dumps(trainer.appearance.as_dict(), indent=1))
     with open(log_path, "w") as f:  # the whole run's records, also across a resume
         for rec in trainer.records:
             f.write(json.dumps(rec) + "\n")
@@ -444,6 +451,7 @@ def run(ctx: StageContext) -> TrainOutput:
         lambda_layout=cfg.lambda_layout if p.layout_reg else 0.0,
         extent=cfg.extent,
         resumed_from=resumed_from,
+        appearance="appearance.json" if trainer.appearance is not None else None,
     )
 
 
