@@ -23,6 +23,8 @@ class Executor(Protocol):
     name: str
     #: Whether jobs run side by side, each limited to the CPUs it asked for.
     shares_cores: bool
+    #: Whether wait() calls on_start when a job starts (else the scheduler reads run logs).
+    reports_start: bool
 
     def submit(self, key: Hashable, fn: Callable[[Any], Any], arg: Any, resources: dict[str, float],
                priority: tuple = ()) -> None: ...
@@ -44,6 +46,7 @@ class LocalExecutor:
 
     name = "local"
     shares_cores = False
+    reports_start = True
 
     def __init__(self):
         self._queue: list[tuple[tuple, int, Hashable, Callable, Any]] = []
@@ -80,6 +83,7 @@ class RayExecutor:
 
     name = "ray"
     shares_cores = True
+    reports_start = False
 
     def __init__(self, address: str | None = None, num_cpus: int | None = None, retries: int = 2):
         try:

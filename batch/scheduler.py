@@ -167,7 +167,8 @@ def _schedule(results: list[SceneResult], jobs: _SceneJobs, executor: Executor, 
                     board.set(results[i].name, name, "queued")
             if not any(s in ("queued", "running") for s in state.values()):
                 break
-            _mark_running(results, state, board)
+            if not executor.reports_start:  # a remote job's start shows in its scene's run log
+                _mark_running(results, state, board)
             for (i, name), outcome in executor.wait(timeout=0.5, on_start=started):
                 _record(results[i], name, outcome, state, board, i)
             board.tick()

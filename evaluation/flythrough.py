@@ -241,11 +241,10 @@ def read_camera_path(file: str | Path, world_up: str = "+z") -> CameraPath:
     """A nerfstudio camera_path.json as pano-pipe poses; every problem a one-line PanoError
     naming the file and the field."""
     from pipeline.errors import PanoError, read_json
-    from pipeline.importers import WORLD_TO_YDOWN, _matrix, nerfstudio_to_pose
+    from pipeline.importers import check_world_up, nerfstudio_to_pose, rigid_matrix
 
     file = Path(file)
-    if world_up not in WORLD_TO_YDOWN:
-        raise PanoError("--world-up", f"must be one of {', '.join(sorted(WORLD_TO_YDOWN))}, got {world_up!r}")
+    check_world_up(world_up)
     if not file.is_file():
         raise PanoError(file, "no such camera path file (--path takes train, test, all, view names or a "
                               "nerfstudio camera_path.json)")
@@ -267,7 +266,7 @@ def read_camera_path(file: str | Path, world_up: str = "+z") -> CameraPath:
         if not isinstance(c2w, list) or len(c2w) != 16:
             got = f"{len(c2w)} entries" if isinstance(c2w, list) else type(c2w).__name__
             raise PanoError(file, f"{field}.camera_to_world: must be 16 numbers (a row-major 4x4), got {got}")
-        m = _matrix([c2w[0:4], c2w[4:8], c2w[8:12], c2w[12:16]], file, f"{field}.camera_to_world")
+        m = rigid_matrix([c2w[0:4], c2w[4:8], c2w[8:12], c2w[12:16]], file, f"{field}.camera_to_world")
         poses.append(nerfstudio_to_pose(m, world_up))
         if "fov" in e:
             f = _number(e["fov"], file, f"{field}.fov")
@@ -328,14 +327,23 @@ def write_video(frames_rgb, out_path: Path, fps: float = 24.0, crf: int = CRF) -
     """Write float RGB [H,W,3] frames in [0,1] (an iterable) as an H.264 mp4 (yuv420p,
     +faststart); returns the frame count. An odd-sized frame is padded by repeating its
     last row/column. The file appears only when complete."""
+    from pipeline.fsutil import atomic_write
+
+    written = 0
+
+    def encode(tmp: Path) -> None:
+        nonlocal written
+        written = _encode_h264(frames_rgb, tmp, fps, crf)
+
+    atomic_write(Path(out_path), encode)  # a finished file only: an interrupted render leaves no half video
+    return written
+
+
+def _encode_h264(frames_rgb, path: Path, fps: float, crf: int) -> int:
     import imageio_ffmpeg
 
-    out_path = Path(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.with_name(f".tmp-{os.getpid()}-{out_path.name}")
     writer = None
     n = 0
-    ok = False
     try:
         for rgb in frames_rgb:
             arr = (np.clip(np.asarray(rgb, dtype=np.float32), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
@@ -345,7 +353,7 @@ def write_video(frames_rgb, out_path: Path, fps: float = 24.0, crf: int = CRF) -
             if writer is None:
                 size = (arr.shape[1], arr.shape[0])
                 writer = imageio_ffmpeg.write_frames(
-                    str(tmp), size, fps=float(fps), codec="libx264", pix_fmt_in="rgb24", pix_fmt_out="yuv420p",
+                    str(path), size, fps=float(fps), codec="libx264", pix_fmt_in="rgb24", pix_fmt_out="yuv420p",
                     macro_block_size=2, quality=None, ffmpeg_log_level="error",
                     output_params=["-crf", str(int(crf)), "-movflags", "+faststart"],
                 )
@@ -356,15 +364,9 @@ def write_video(frames_rgb, out_path: Path, fps: float = 24.0, crf: int = CRF) -
             n += 1
         if writer is None:
             raise ValueError("no frames to write")
-        writer.close()
-        writer = None
-        tmp.replace(out_path)  # a finished file only: an interrupted render leaves no half video
-        ok = True
     finally:
         if writer is not None:
             writer.close()
-        if not ok:
-            tmp.unlink(missing_ok=True)
     return n
 
 

@@ -156,7 +156,8 @@ def export_command(
                                             help="mesh: screened Poisson octree depth.")] = 8,
 ) -> None:
     """Export a run's trained Gaussians (.ply / .splat / .spz) or a coloured mesh of the room."""
-    from export.fileio import atomic_write, check_writable
+    from export.fileio import check_writable
+    from pipeline.fsutil import atomic_write
     from export.transform import to_y_up, y_up_points
 
     fmt = ExportFormat(format).value

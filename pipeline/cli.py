@@ -203,10 +203,10 @@ def run_header(engine) -> str:
     views = engine.scene.views
     n_train = sum(v.split == "train" for v in views)
     train = engine.params_for("train")
-    height = train.resolved("height") if hasattr(train, "resolved") else getattr(train, "height", None)
+    height = train.resolved("height")
     device = "cuda" if torch.cuda.is_available() else "cpu"
     return escape(f"scene {engine.scene.name}: {len(views)} views ({n_train} train, {len(views) - n_train} test); "
-                  f"training at {height}x{2 * height if height else '?'}, preset {train.preset}, "
+                  f"training at {height}x{2 * height}, preset {train.preset}, "
                   f"device {device} (training runs on the CPU); output {engine.out_dir}")
 
 

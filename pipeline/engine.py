@@ -50,6 +50,8 @@ class StagePlan:
     code_version: str = ""
     #: The parameters as they enter the key (file parameters by content hash).
     params_json: dict = field(default_factory=dict)
+    #: The hash of the scene inputs the key was computed from.
+    scene_hash: str = ""
 
 
 @dataclass
@@ -289,7 +291,7 @@ class Engine:
                 {"stage": name, "scene": scene_hash, "params": params_json, "code": code, "upstream": upstream}
             )
             plan = StagePlan(name, "missing", params, key, last_duration_s=last, upstream=upstream,
-                             code_version=code, params_json=params_json)
+                             code_version=code, params_json=params_json, scene_hash=scene_hash)
             if meta is None:
                 plan.reason = "never run" if not (self.out_dir / name).exists() else "no readable artifact.json"
             elif meta.key != key:
@@ -382,7 +384,7 @@ class Engine:
                 meta = ArtifactMeta(
                     stage=p.name,
                     key=p.key or "",
-                    scene_hash=self._stage_scene_hash(spec, p.params),
+                    scene_hash=p.scene_hash,  # as planned, like the code version
                     params=p.params_json,
                     files=file_sizes(tmp),
                     code_version=p.code_version,  # as planned: the key was computed from it

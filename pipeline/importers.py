@@ -130,7 +130,13 @@ def unique_names(stems: list[str]) -> list[str]:
     return out
 
 
-def _matrix(value, where: Path, field: str) -> np.ndarray:
+def check_world_up(world_up: str) -> None:
+    """A nerfstudio world's up axis as --world-up names it, or a one-line PanoError."""
+    if world_up not in WORLD_TO_YDOWN:
+        raise PanoError("--world-up", f"must be one of {', '.join(sorted(WORLD_TO_YDOWN))}, got {world_up!r}")
+
+
+def rigid_matrix(value, where: Path, field: str) -> np.ndarray:
     """A frame's transform_matrix as a checked 4x4 rigid float matrix; else a PanoError naming the field."""
     if not isinstance(value, list) or len(value) not in (3, 4):
         got = f"{len(value)} rows" if isinstance(value, list) else type(value).__name__
@@ -189,8 +195,7 @@ def import_nerfstudio(
     Every problem is a one-line PanoError; problems with the input are found before anything is
     written, and a failure while writing (a disk full) leaves OUT as it was.
     """
-    if world_up not in WORLD_TO_YDOWN:
-        raise PanoError("--world-up", f"must be one of {', '.join(sorted(WORLD_TO_YDOWN))}, got {world_up!r}")
+    check_world_up(world_up)
     if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 0:
         raise PanoError("--test-every",
                         f"must be 0 (no test views) or a positive whole number, got {test_every!r}")
@@ -232,7 +237,7 @@ def import_nerfstudio(
         named, src = _frame_image(frame, i, base, transforms)
         if "transform_matrix" not in frame:
             raise PanoError(transforms, f"frames.{i}.transform_matrix: missing")
-        m = _matrix(frame["transform_matrix"], transforms, f"frames.{i}.transform_matrix")
+        m = rigid_matrix(frame["transform_matrix"], transforms, f"frames.{i}.transform_matrix")
         if test_names:
             split = "test" if named.name in test_names else "train"
         else:

@@ -7,6 +7,21 @@ import sys
 from pipeline import cli
 
 
+def run_main(args) -> int:
+    """`pano-pipe ARGS` in this process, output not captured (fixtures that build a run): the exit code."""
+    old = sys.argv
+    sys.argv = ["pano-pipe", *map(str, args)]
+    try:
+        try:
+            cli.main()
+            return 0
+        except SystemExit as e:
+            return e.code if isinstance(e.code, int) else 0 if e.code is None else 1
+    finally:
+        sys.argv = old
+        cli._state["debug"] = False
+
+
 def invoke(args, capsys) -> tuple[int, str, str]:
     """`pano-pipe ARGS` in this process: (exit code, stdout, stderr)."""
     old = sys.argv

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 import trimesh
-from conftest import distance_to_box, room_box, run_cli
+from export_helpers import distance_to_box, room_box, run_cli
 
 from export.spz import read_spz
 from gaussians.ply import load_ply

@@ -7,9 +7,9 @@ import gzip
 import numpy as np
 import pytest
 import torch
-from conftest import random_gaussians
+from export_helpers import random_gaussians
 
-from export.fileio import atomic_write
+from pipeline.fsutil import atomic_write
 from export.splat import SPLAT_DTYPE, read_splat, splat_order, write_splat
 from export.spz import MAGIC, read_spz, spz_bytes, spz_header, write_spz
 from export.transform import to_y_up

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
-from conftest import distance_to_box, room_box
+from export_helpers import distance_to_box, room_box
 
 from export.mesh import OrientedPoints, reconstruct
 

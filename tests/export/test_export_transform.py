@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import random_gaussians
+from export_helpers import random_gaussians
 
 import splatting
 from export.transform import to_y_up, y_up_points, y_up_pose

@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import pytest
 
 from pipeline import cli
-from tests.clitools import invoke
+from tests.clitools import invoke, run_main
 from pipeline.console import PlainProgress
 from simulate.generate import generate_scene
 
@@ -26,12 +25,7 @@ def run_cli(args, capsys) -> tuple[int, str, str]:
 def finished_run(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("ux")
     generate_scene(root / "S", views=3, test_views=2, height=16, effects="none", with_layout=True, with_depth=True)
-    old = sys.argv
-    sys.argv = ["pano-pipe", "run", "all", str(root / "S"), "--out", str(root / "R"), *FAST]
-    try:
-        cli.main()
-    finally:
-        sys.argv = old
+    assert run_main(["run", "all", root / "S", "--out", root / "R", *FAST]) == 0
     return root
 
 

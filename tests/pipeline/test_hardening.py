@@ -10,7 +10,6 @@ import json
 import os
 import shutil
 import struct
-import sys
 import zlib
 from pathlib import Path
 
@@ -19,7 +18,7 @@ import numpy as np
 import pytest
 
 from pipeline import cli
-from tests.clitools import invoke
+from tests.clitools import invoke, run_main
 from pipeline.fsutil import run_folder_lock
 from simulate.generate import generate_scene
 
@@ -79,12 +78,7 @@ def finished_run(tmp_path_factory, base_scene) -> Path:
     """A complete run of the base scene (fast settings), to copy."""
     root = tmp_path_factory.mktemp("finished")
     shutil.copytree(base_scene, root / "S")
-    old = sys.argv
-    sys.argv = ["pano-pipe", "run", "all", str(root / "S"), "--out", str(root / "R"), *FAST]
-    try:
-        cli.main()
-    finally:
-        sys.argv = old
+    assert run_main(["run", "all", root / "S", "--out", root / "R", *FAST]) == 0
     assert (root / "R" / "evaluate" / "artifact.json").is_file()
     return root
 

@@ -9,7 +9,6 @@ import os
 import shutil
 import socket
 import subprocess
-import sys
 import tempfile
 import time
 import urllib.request
@@ -18,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline import cli
 from simulate.generate import generate_scene
+from tests.clitools import run_main
 
 CHROMIUM = Path(os.environ.get("PANO_PIPE_CHROMIUM", "/usr/bin/chromium"))
 
@@ -29,15 +28,8 @@ def finished(tmp_path_factory) -> Path:
     """A scene S and a finished (tiny) run R of it."""
     root = tmp_path_factory.mktemp("view")
     generate_scene(root / "S", views=3, test_views=1, height=16, effects="none", with_layout=True, with_depth=True)
-    old = sys.argv
-    sys.argv = ["pano-pipe", "run", "all", str(root / "S"), "--out", str(root / "R"),
-                "--set", "train.iterations=5", "--set", "train.height=8"]
-    try:
-        cli.main()
-    except SystemExit as e:
-        assert e.code in (0, None)
-    finally:
-        sys.argv = old
+    assert run_main(["run", "all", root / "S", "--out", root / "R",
+                     "--set", "train.iterations=5", "--set", "train.height=8"]) == 0
     assert (root / "R" / "train" / "point_cloud.ply").is_file()
     return root
 
