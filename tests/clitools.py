@@ -37,3 +37,9 @@ def invoke(args, capsys) -> tuple[int, str, str]:
         cli._state["debug"] = False
     cap = capsys.readouterr()
     return code, cap.out, cap.err
+
+
+def without_kernel_notices(err: str) -> str:
+    """stderr less the splatting kernel's one-time compile notices ("splatting: ..."), which
+    the first render on a machine prints whatever command runs it."""
+    return "".join(line for line in err.splitlines(keepends=True) if not line.startswith("splatting: "))
