@@ -21,6 +21,8 @@ $(STAMP): pyproject.toml
 	@# torch first and pinned: the CPU build, so no resolver pulls CUDA wheels.
 	$(PIP) install -q $(TORCH)
 	$(PIP) install -q -e ".[test]"
+	@# LPIPS's linear heads ship in the lpips wheel; --no-deps: its torchvision would replace our torch.
+	$(PIP) install -q --no-deps lpips==0.1.4
 	@touch $(STAMP)
 
 system-deps:

@@ -9,16 +9,21 @@ returns a Python float so results drop straight into pydantic models.
   3DGS code base, so numbers compare with papers that use it.
 - WS-PSNR: PSNR with every row weighted by cos(latitude) of its centre
   (Sun et al. 2017), because an equirectangular image over-samples the poles.
-- LPIPS (v0.1, AlexNet or VGG16 backbone, written here in torch): needs
-  weights on disk; `load_lpips` returns the model or raises LpipsUnavailable
-  with the reason, so callers report "unavailable: <reason>", never 0.
+- LPIPS (v0.1, AlexNet or VGG16 backbone, written here in torch): the
+  published weights from their standard places (torch hub cache, the lpips
+  wheel); `load_lpips` returns the model or raises LpipsUnavailable with the
+  missing file, its URL and where to put it, so callers report
+  "unavailable: <reason>", never 0.
 - Depth: AbsRel and RMSE over pixels whose ground truth is finite and > 0.
 """
 
 from __future__ import annotations
 
+import contextlib
+import importlib.util
 import math
 import os
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,7 +44,9 @@ __all__ = [
     "load_lpips",
     "find_lpips_weights",
     "LPIPS_ENV",
-    "LPIPS_DEFAULT_DIR",
+    "OFFLINE_ENV",
+    "hub_backbone_path",
+    "lpips_package_heads",
 ]
 
 # Clamp for perfect reconstructions: PSNR of identical images is reported as
@@ -187,7 +194,12 @@ def depth_metrics(pred, gt, mask=None) -> dict[str, float | int]:
 
 # -- LPIPS ----------------------------------------------------------------------
 LPIPS_ENV = "PANO_PIPE_LPIPS_WEIGHTS"
-LPIPS_DEFAULT_DIR = Path.home() / ".cache" / "pano-pipe" / "lpips"
+OFFLINE_ENV = "PANO_PIPE_OFFLINE"  # set: never download weights (tests, air-gapped machines)
+# Where the published files come from: torchvision's model zoo and the lpips repository
+# (its wheel, lpips 0.1.4, ships the same heads under lpips/weights/v0.1/).
+TORCHVISION_URL = "https://download.pytorch.org/models/"
+LPIPS_HEADS_URL = "https://github.com/richzhang/PerceptualSimilarity/raw/master/lpips/weights/v0.1/"
+LPIPS_PACKAGE_VERSION = "0.1.4"
 
 # File names as published: torchvision's ImageNet backbones and the lpips
 # package's v0.1 linear heads (github.com/richzhang/PerceptualSimilarity).
@@ -287,56 +299,105 @@ class LpipsFiles:
     lin: Path
 
 
-def find_lpips_weights(net: str = "alex", explicit: str | Path | None = None) -> LpipsFiles:
-    """Locate the backbone and linear-head weights, or raise LpipsUnavailable saying where it looked.
+def hub_backbone_path(net: str = "alex") -> Path:
+    """Where torch hub keeps torchvision's backbone (honours $TORCH_HOME)."""
+    return Path(torch.hub.get_dir()) / "checkpoints" / _BACKBONE_FILES[net]
 
-    Order: `explicit` (a parameter), then $PANO_PIPE_LPIPS_WEIGHTS, then
-    ~/.cache/pano-pipe/lpips/. Each may be a folder holding the two published
-    files (alexnet-owt-7be5be79.pth + alex.pth, or vgg16-397923af.pth + vgg.pth),
-    or one .pth holding both state dicts merged. The backbone is also looked
-    for in torch hub's checkpoint cache.
+
+def lpips_package_heads(net: str = "alex") -> Path | None:
+    """The linear heads inside the installed `lpips` wheel (lpips/weights/v0.1/<net>.pth), or None.
+
+    The package is located, not imported: its __init__ imports torchvision, which the CPU
+    torch pinned here cannot load."""
+    spec = importlib.util.find_spec("lpips")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    return Path(next(iter(spec.submodule_search_locations))) / "weights" / "v0.1" / _LIN_FILES[net]
+
+
+def _user_location(what: str, p: Path, net: str) -> LpipsFiles:
+    """A folder or merged .pth the user named: it is the answer, found or not."""
+    if p.is_file():
+        return LpipsFiles(p, p)
+    if not p.is_dir():
+        raise LpipsUnavailable(f"no {net} LPIPS weights: {p} ({what}) does not exist")
+    bb, lin = p / _BACKBONE_FILES[net], p / _LIN_FILES[net]
+    if not bb.is_file() and hub_backbone_path(net).is_file():
+        bb = hub_backbone_path(net)
+    missing = [f.name for f in (bb, lin) if not f.is_file()]
+    if missing:
+        raise LpipsUnavailable(f"no {net} LPIPS weights: {p} ({what}) lacks {' and '.join(missing)}")
+    return LpipsFiles(bb, lin)
+
+
+def find_lpips_weights(net: str = "alex", explicit: str | Path | None = None, download: bool = True) -> LpipsFiles:
+    """Locate the backbone and linear-head weights, or raise LpipsUnavailable naming what is missing.
+
+    A location the user names (`explicit`, then $PANO_PIPE_LPIPS_WEIGHTS: a folder with the two
+    published files, or one .pth holding both state dicts) is the only place looked. Otherwise the
+    standard places: torchvision's backbone in the torch hub cache, downloaded there on first use
+    with torch.hub.load_state_dict_from_url (unless `download` is False or $PANO_PIPE_OFFLINE is
+    set), and the linear heads shipped in the `lpips` wheel.
     """
     if net not in _LIN_FILES:
         raise LpipsUnavailable(f"unknown LPIPS backbone {net!r} (use 'alex' or 'vgg')")
-    candidates: list[tuple[str, Path]] = []
     if explicit:
-        candidates.append(("parameter lpips_weights", Path(explicit).expanduser()))
+        return _user_location("parameter lpips_weights", Path(explicit).expanduser(), net)
     if os.environ.get(LPIPS_ENV):
-        candidates.append((f"${LPIPS_ENV}", Path(os.environ[LPIPS_ENV]).expanduser()))
-    candidates.append(("default folder", LPIPS_DEFAULT_DIR))
-    hub = Path(torch.hub.get_dir()) / "checkpoints" / _BACKBONE_FILES[net]
-    looked = []
-    for what, p in candidates:
-        if p.is_file():
-            return LpipsFiles(p, p)
-        if p.is_dir():
-            lin = p / _LIN_FILES[net]
-            bb = p / _BACKBONE_FILES[net]
-            if not bb.is_file() and hub.is_file():
-                bb = hub
-            if lin.is_file() and bb.is_file():
-                return LpipsFiles(bb, lin)
-            missing = [f.name for f in (bb, lin) if not f.is_file()]
-            looked.append(f"{p} ({what}) lacks {' and '.join(missing)}")
-        else:
-            looked.append(f"{p} ({what}) does not exist")
-        if what != "default folder":
-            # A location the user named explicitly and that fails is the answer.
-            break
-    raise LpipsUnavailable(
-        f"no {net} LPIPS weights: {'; '.join(looked)}; set ${LPIPS_ENV} to a folder holding "
-        f"{_BACKBONE_FILES[net]} and {_LIN_FILES[net]}"
-    )
+        return _user_location(f"${LPIPS_ENV}", Path(os.environ[LPIPS_ENV]).expanduser(), net)
+
+    heads = lpips_package_heads(net)
+    if heads is None or not heads.is_file():
+        where = "the lpips package is not installed" if heads is None else f"{heads} is missing"
+        raise LpipsUnavailable(
+            f"no {net} LPIPS linear heads: {where}; install the wheel that carries them with "
+            f"`pip install --no-deps lpips=={LPIPS_PACKAGE_VERSION}` (--no-deps keeps torchvision out), "
+            f"or put {LPIPS_HEADS_URL}{_LIN_FILES[net]} and {TORCHVISION_URL}{_BACKBONE_FILES[net]} "
+            f"in a folder named by ${LPIPS_ENV}")
+    backbone = hub_backbone_path(net)
+    if not backbone.is_file():
+        _download_backbone(net, backbone, download)
+    return LpipsFiles(backbone, heads)
 
 
-def load_lpips(net: str = "alex", weights: str | Path | None = None) -> LPIPS:
-    """An LPIPS model with weights loaded, or LpipsUnavailable(reason)."""
-    files = find_lpips_weights(net, weights)
+def _download_backbone(net: str, dest: Path, allowed: bool) -> None:
+    url = TORCHVISION_URL + _BACKBONE_FILES[net]
+    if not allowed or os.environ.get(OFFLINE_ENV):
+        why = "downloads are off" + (f" (${OFFLINE_ENV} is set)" if os.environ.get(OFFLINE_ENV) else "")
+        raise LpipsUnavailable(f"{dest} is missing and {why}: download {url} and put it there")
     try:
-        backbone = torch.load(files.backbone, map_location="cpu", weights_only=True)
-        lin = backbone if files.lin == files.backbone else torch.load(files.lin, map_location="cpu", weights_only=True)
-        model = LPIPS(net)
+        # Checks the published SHA-256 prefix in the file name; writes nothing on failure. torch hub
+        # announces the download on stderr, which pano-pipe keeps for the one error line.
+        with contextlib.redirect_stderr(sys.stdout):
+            torch.hub.load_state_dict_from_url(url, map_location="cpu", weights_only=True, progress=False,
+                                               check_hash=True)
+    except Exception as e:  # offline, proxy, disk full, bad hash: the user needs the same three facts
+        raise LpipsUnavailable(
+            f"{dest} is missing and downloading {url} failed ({type(e).__name__}: {e}); "
+            f"download it by hand and put it there") from None
+    if not dest.is_file():  # a hub dir changed under us
+        raise LpipsUnavailable(f"downloaded {url} but {dest} is not there")
+
+
+def _load_state(path: Path) -> dict:
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # truncated download, not a checkpoint, pickled code: say which file
+        raise LpipsUnavailable(f"could not load LPIPS weights from {path}: {type(e).__name__}: {e}") from None
+    if not isinstance(state, dict):
+        raise LpipsUnavailable(f"could not load LPIPS weights from {path}: not a state dict")
+    return state
+
+
+def load_lpips(net: str = "alex", weights: str | Path | None = None, download: bool = True) -> LPIPS:
+    """An LPIPS model with weights loaded, or LpipsUnavailable(reason)."""
+    files = find_lpips_weights(net, weights, download)
+    model = LPIPS(net)
+    backbone = _load_state(files.backbone)
+    lin = backbone if files.lin == files.backbone else _load_state(files.lin)
+    try:
         model.load_weights(backbone, lin)
-    except Exception as e:  # corrupt or mismatched files: say which and why
-        raise LpipsUnavailable(f"could not load LPIPS weights from {files.backbone}: {type(e).__name__}: {e}") from None
+    except (KeyError, RuntimeError) as e:  # keys or shapes of another network
+        where = files.backbone if files.lin == files.backbone else f"{files.backbone} / {files.lin}"
+        raise LpipsUnavailable(f"LPIPS weights in {where} do not fit the {net} network: {e}") from None
     return model

@@ -52,8 +52,11 @@ class Params(BaseModel):
     lpips_net: Literal["alex", "vgg"] = "alex"
     lpips_weights: str | None = Field(
         default=None,
-        description="Folder or .pth with LPIPS weights; default $PANO_PIPE_LPIPS_WEIGHTS, then ~/.cache/pano-pipe/lpips/.",
+        description="Folder or .pth with LPIPS weights; default $PANO_PIPE_LPIPS_WEIGHTS, then the standard places "
+        "(torch hub cache for the backbone, the lpips wheel for the heads).",
     )
+    lpips_download: bool = Field(
+        default=True, description="Download a missing LPIPS backbone into the torch hub cache (off: $PANO_PIPE_OFFLINE).")
     fps_repeats: int = Field(default=5, ge=1, description="Renders timed for the median FPS.")
     background: tuple[float, float, float] | None = Field(
         default=None, description="Background colour behind the splats (None: the one training used)."
@@ -194,7 +197,7 @@ def run(ctx: StageContext) -> EvaluateOutput:
         lpips_model, lpips_reason = None, None
         if p.lpips:
             try:
-                lpips_model = M.load_lpips(p.lpips_net, p.lpips_weights)
+                lpips_model = M.load_lpips(p.lpips_net, p.lpips_weights, p.lpips_download)
             except M.LpipsUnavailable as e:
                 lpips_reason = str(e)
                 ctx.warn(f"LPIPS unavailable: {lpips_reason}")

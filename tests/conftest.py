@@ -7,6 +7,8 @@ import os
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads; see pipeline/cli.py
+# Tests never download LPIPS weights (CI is offline); subprocesses inherit this.
+os.environ["PANO_PIPE_OFFLINE"] = "1"
 
 import cv2
 import numpy as np

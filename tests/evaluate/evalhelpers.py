@@ -102,3 +102,29 @@ def run_evaluate(scene, run_dir: Path, write_artifact: bool = True, **params):
         (run_dir / "evaluate" / "artifact.json").write_text(
             Artifact[EvaluateOutput](meta=meta, data=out).model_dump_json(indent=1))
     return out, ctx
+
+
+def fake_lpips_state(net: str = "alex", seed: int = 0) -> tuple[dict, dict]:
+    """Backbone and linear-head state dicts with the published keys and random values: they
+    exercise finding and loading the files, not LPIPS's calibration."""
+    from evaluation import metrics as M
+
+    torch.manual_seed(seed)
+    model = M.LPIPS(net)
+    for p in model.parameters():
+        p.data = torch.rand_like(p) * (0.05 if p.ndim == 4 and p.shape[2] > 1 else 1.0)
+    backbone = {f"features.{k}": v for k, v in model.features.state_dict().items()}
+    backbone["classifier.1.weight"] = torch.zeros(2, 2)  # torchvision's classifier: ignored
+    lin = {f"lin{i}.model.1.weight": model.lins[i].weight.data for i in range(5)}
+    return backbone, lin
+
+
+def write_fake_lpips_folder(folder: Path, net: str = "alex", seed: int = 0) -> tuple[dict, dict]:
+    """The two published files, random-valued, in one folder (the $PANO_PIPE_LPIPS_WEIGHTS layout)."""
+    from evaluation import metrics as M
+
+    backbone, lin = fake_lpips_state(net, seed)
+    folder.mkdir(parents=True, exist_ok=True)
+    torch.save(backbone, folder / M._BACKBONE_FILES[net])
+    torch.save(lin, folder / M._LIN_FILES[net])
+    return backbone, lin

@@ -9,6 +9,7 @@ import pytest
 import torch
 from scipy import ndimage
 
+from evalhelpers import write_fake_lpips_folder
 from evaluation import metrics as M
 
 
@@ -127,23 +128,8 @@ def test_lpips_unavailable_reports_reason(tmp_path, monkeypatch):
         M.load_lpips("alex", weights=bad)
 
 
-def _fake_weights(folder, net="alex", seed=0):
-    # Published file layout with random values: exercises loading, not calibration.
-    torch.manual_seed(seed)
-    model = M.LPIPS(net)
-    for p in model.parameters():
-        p.data = torch.rand_like(p) * (0.05 if p.ndim == 4 and p.shape[2] > 1 else 1.0)
-    backbone = {f"features.{k}": v for k, v in model.features.state_dict().items()}
-    backbone["classifier.1.weight"] = torch.zeros(2, 2)  # extra keys are ignored
-    lin = {f"lin{i}.model.1.weight": model.lins[i].weight.data for i in range(5)}
-    folder.mkdir(parents=True, exist_ok=True)
-    torch.save(backbone, folder / M._BACKBONE_FILES[net])
-    torch.save(lin, folder / M._LIN_FILES[net])
-    return backbone, lin
-
-
 def test_lpips_with_weights_present(tmp_path, monkeypatch):
-    backbone, lin = _fake_weights(tmp_path / "w")
+    backbone, lin = write_fake_lpips_folder(tmp_path / "w")
     monkeypatch.setenv(M.LPIPS_ENV, str(tmp_path / "w"))
     model = M.load_lpips("alex")
     rng = np.random.default_rng(5)
