@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from typing import Optional, Union
 
@@ -26,22 +27,40 @@ class RenderOutput:
     means2d: torch.Tensor  # [N,2] leaf; .grad = tangent-plane position gradient (pixels)
     radii: torch.Tensor  # [N] int32 pixels, 0 = not visible
     visible: torch.Tensor  # [N] bool
-    backend: str = "torch"
+    backend: str = "torch"  # what actually ran: "cpp", "cuda" or "torch"
 
 
 def _pick_backend(backend, device):
     if backend is None:
-        backend = "cpp" if device.type == "cpu" else "torch"
-    if backend not in ("cpp", "torch"):
-        raise ValueError(f"backend must be 'cpp', 'torch' or None, got {backend!r}")
+        backend = "cpp" if device.type == "cpu" else "cuda"
+    if backend not in ("cpp", "cuda", "torch"):
+        raise ValueError(f"backend must be 'cpp', 'cuda', 'torch' or None, got {backend!r}")
     if backend == "cpp":
         if device.type != "cpu":
-            raise ValueError("backend='cpp' needs CPU tensors; use backend='torch' on CUDA")
+            raise ValueError("backend='cpp' needs CPU tensors; use backend='cuda' (or 'torch') on CUDA")
         from . import raster_cpp
 
         if raster_cpp.load() is None:
             backend = "torch"
+    elif backend == "cuda":
+        from . import raster_triton
+
+        reason = raster_triton.unavailable_reason(device)
+        if reason is not None:
+            if device.type != "cuda":
+                raise ValueError(reason)
+            _warn_once(f"splatting: the cuda backend cannot run ({reason}); falling back to the torch backend.")
+            backend = "torch"
     return backend
+
+
+_WARNED: set = set()
+
+
+def _warn_once(message):
+    if message not in _WARNED:
+        _WARNED.add(message)
+        warnings.warn(message, RuntimeWarning, stacklevel=3)
 
 
 def _color_fn(colors, sh_degree, N):
@@ -84,7 +103,8 @@ def render(
 
     Differentiable in every tensor argument; runs in the dtype of ``means``
     (float32 or float64). ``backend``: "cpp" (CPU kernel, default for CPU tensors),
-    "torch" (pure torch, default for CUDA tensors). See docs/splatting.md.
+    "cuda" (Triton kernels, default for CUDA tensors; CPU tensors too when
+    ``TRITON_INTERPRET=1``), "torch" (pure torch reference). See docs/splatting.md.
     """
     if not isinstance(camera, (EquirectCamera, PinholeCamera)):
         raise TypeError("camera must be splatting.EquirectCamera or splatting.PinholeCamera")
@@ -115,7 +135,11 @@ def render(
     dirs = camera.pixel_dirs(dtype=dtype, device=device)
     ts = int(tile_size)
     toff, tlist = bin_gaussians_torch(proj.bbox, proj.packed[:, 18].detach(), H, W, ts)
-    color, depth, alpha = TorchRaster.apply(proj.packed, dirs, toff, tlist, H, W, ts)
+    if backend == "cuda":
+        from .raster_triton import TritonRaster as raster
+    else:
+        raster = TorchRaster
+    color, depth, alpha = raster.apply(proj.packed, dirs, toff, tlist, H, W, ts)
     if background is not None:
         bg = torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
         image = color + (1.0 - alpha)[..., None] * bg
