@@ -87,6 +87,12 @@ class View(BaseModel):
         return self.pose_matrix[:3, 3].copy()
 
 
+#: The nadir cap for real captures: a tripod with a levelling base (ZInD's) reaches ~32° from the
+#: nadir, a hand-held pole or a bare tripod less. Checked on ../shared/data/zind_pair by
+#: tests/masks/test_real_captures.py; the importers write it, synthetic scenes keep 0.
+REAL_CAPTURE_NADIR_DEG = 35.0
+
+
 class SceneManifest(BaseModel):
     """`scene.json`: the list of views. Paths are relative to the scene folder."""
 
@@ -98,7 +104,7 @@ class SceneManifest(BaseModel):
         default=None, description="Ground-truth floor plan JSON (simulator), for evaluation only."
     )
     nadir_mask_deg: float = Field(
-        default=0.0, ge=0.0, le=90.0,
+        default=0.0, ge=0.0, le=90.0,  # REAL_CAPTURE_NADIR_DEG is the value for captured panoramas
         description="A cap of this angular radius around every view's nadir (tripod, hand) is left out of "
                     "training, depth back-projection and metrics; 0 = off.")
 
