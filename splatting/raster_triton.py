@@ -211,25 +211,29 @@ if triton is not None:
             k0 -= CHUNK
 
 
-def interpreted() -> bool:
-    """True if these kernels run in the Triton interpreter (``TRITON_INTERPRET=1`` at import)."""
-    if triton is None:
-        return False
+def _interpreter_state():
+    """(our kernels are interpreted, triton's library functions are interpreted)."""
     from triton.runtime.interpreter import InterpretedFunction
 
-    return isinstance(_raster_fwd, InterpretedFunction)
+    return isinstance(_raster_fwd, InterpretedFunction), isinstance(tl.standard.sum, InterpretedFunction)
+
+
+_INTERPRETED, _LIBRARY_INTERPRETED = _interpreter_state() if triton is not None else (False, False)
+
+
+def interpreted() -> bool:
+    """True if these kernels run in the Triton interpreter (``TRITON_INTERPRET=1`` when triton was imported)."""
+    return _INTERPRETED
 
 
 def unavailable_reason(device: torch.device):
     """Why the kernels cannot run on ``device`` (one line), or None if they can."""
     if triton is None:
         return f"triton is not installed ({_IMPORT_ERROR})"
-    from triton.runtime.interpreter import InterpretedFunction
-
-    if isinstance(tl.standard.sum, InterpretedFunction) != interpreted():
+    if _INTERPRETED != _LIBRARY_INTERPRETED:
         return ("TRITON_INTERPRET changed between the first import of triton and of splatting.raster_triton; "
                 "set it before anything imports triton")
-    if device.type == "cuda" or interpreted():
+    if device.type == "cuda" or _INTERPRETED:
         return None
     return (f"backend='cuda' needs CUDA tensors (got {device.type}); set TRITON_INTERPRET=1 before importing "
             "triton to run its kernels on the CPU in the Triton interpreter")

@@ -9,6 +9,13 @@ from pathlib import Path
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads; see pipeline/cli.py
 # Tests never download LPIPS weights (CI is offline); subprocesses inherit this.
 os.environ["PANO_PIPE_OFFLINE"] = "1"
+# Without CUDA, the `cuda` splatting backend's Triton kernels run in the Triton interpreter.
+# Triton reads this when it is first imported (its library functions are decorated then),
+# so it is set here, before any test module can import triton (splatting/raster_triton.py).
+import torch  # noqa: E402  (after OMP_WAIT_POLICY)
+
+if not torch.cuda.is_available():
+    os.environ.setdefault("TRITON_INTERPRET", "1")
 
 import cv2
 import numpy as np

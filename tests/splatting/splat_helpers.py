@@ -49,3 +49,49 @@ def dense_render(means, quats, scales, op, col, viewmat, camera, eps2d=0.3, near
 
 def all_finite(*ts):
     return all(bool(torch.isfinite(t).all()) for t in ts if t is not None)
+
+
+def hard_case_scene(kind, dtype):
+    """A few ordinary Gaussians plus the hard one(s)."""
+    base_means = [dir_from_angles(a, 0.1 * i) * (1.5 + 0.3 * i) for i, a in enumerate((0.5, 2.0, -1.0, -2.5))]
+    means = [m for m in base_means]
+    quats = [[1.0, 0.1 * i, 0.2, -0.1] for i in range(4)]
+    scales = [[0.2, 0.1, 0.15]] * 4
+    ops = [0.6, 0.7, 0.8, 0.5]
+    extra = {
+        "north_pole": ([0.0, -2.0, 0.0], [1, 0, 0, 0], [0.3, 0.2, 0.1], 0.9),
+        "south_pole": ([0.0, 2.0, 0.0], [0.3, 0.4, 0.5, 0.6], [0.3, 0.2, 0.1], 0.9),
+        "seam": ([0.0, 0.0, -2.0], [1, 0, 0, 0], [0.5, 0.2, 0.1], 0.9),
+        "at_camera": ([1e-6, 0.0, 0.0], [1, 0, 0, 0], [0.1, 0.1, 0.1], 0.9),
+        "far": ([1e4, 0.0, 3e3], [1, 0, 0, 0], [50.0, 50.0, 50.0], 0.9),
+        "far_small": ([0.0, 0.0, 1e4], [1, 0, 0, 0], [1e-3, 1e-3, 1e-3], 0.9),
+        "tiny": ([0.3, 0.1, 1.0], [1, 0, 0, 0], [1e-9, 1e-9, 1e-9], 0.9),
+        "huge": ([0.3, 0.1, 1.0], [1, 0, 0, 0], [1e3, 1e3, 1e3], 0.9),
+        "mixed_scales": ([0.3, 0.1, 1.0], [0.7, 0.1, 0.5, 0.2], [1e3, 1e-9, 1.0], 0.9),
+        "disc_face_on": ([0.0, 0.0, 1.5], [1, 0, 0, 0], [0.3, 0.3, 1e-9], 0.9),
+        "disc_edge_on": ([0.0, 0.0, 1.5], [0.7071067811865476, 0.0, 0.7071067811865476, 0.0], [0.3, 0.3, 1e-9], 0.9),
+        "disc_oblique": ([1.0, -0.5, 1.5], [0.9, 0.3, 0.2, 0.1], [0.3, 0.2, 1e-9], 0.9),
+        "zero_quat": ([0.5, 0.0, 1.5], [0, 0, 0, 0], [0.3, 0.1, 0.1], 0.9),
+        "unnormalised_quat": ([0.5, 0.0, 1.5], [20.0, 3.0, -5.0, 1.0], [0.3, 0.1, 0.1], 0.9),
+        "tiny_quat": ([0.5, 0.0, 1.5], [1e-30, 0, 1e-30, 0], [0.3, 0.1, 0.1], 0.9),
+        "opacity_zero": ([0.0, 0.0, 1.5], [1, 0, 0, 0], [0.3, 0.3, 0.3], 0.0),
+        "opacity_one": ((dir_from_angles(math.pi / 32, -math.pi / 32) * 1.5).tolist(), [1, 0, 0, 0], [0.3, 0.3, 0.3], 1.0),
+        "beyond_hemisphere": ([0.0, 0.0, 0.1], [1, 0, 0, 0], [2.0, 2.0, 2.0], 0.9),
+        "just_past_near": ([0.0, 0.0, 0.0501], [1, 0, 0, 0], [0.01, 0.01, 0.01], 0.9),
+        "behind_pinhole": ([0.0, 0.0, -1.0], [1, 0, 0, 0], [0.3, 0.3, 0.3], 0.9),
+    }[kind]
+    means.append(torch.tensor(extra[0], dtype=torch.float64))
+    quats.append(extra[1])
+    scales.append(extra[2])
+    ops.append(extra[3])
+    n = len(means)
+    t = lambda x: torch.tensor(x, dtype=dtype)
+    return [
+        torch.stack(means).to(dtype), t(quats), t(scales), t(ops),
+        torch.rand(n, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64).to(dtype),
+    ]
+
+
+HARD_KINDS = ["north_pole", "south_pole", "seam", "at_camera", "far", "far_small", "tiny", "huge", "mixed_scales",
+              "disc_face_on", "disc_edge_on", "disc_oblique", "zero_quat", "unnormalised_quat", "tiny_quat",
+              "opacity_zero", "opacity_one", "beyond_hemisphere", "just_past_near"]
