@@ -188,13 +188,14 @@ def test_empty_scene(backend):
     assert float(out.alpha.abs().max()) == 0.0 and float((out.image - 1).abs().max()) == 0.0
 
 
+@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_torch_backend_on_cuda_matches_cpu():
     scene = random_scene(40, seed=9, dtype=torch.float32)
     cam = splatting.EquirectCamera(32, 64)
     cpu = splatting.render(*scene, eye(torch.float32), cam, backend="torch")
     params = [x.cuda().requires_grad_(True) for x in scene]
-    gpu = splatting.render(*params, eye(torch.float32).cuda(), cam)
+    gpu = splatting.render(*params, eye(torch.float32).cuda(), cam, backend="torch")
     assert gpu.backend == "torch" and gpu.image.is_cuda
     torch.testing.assert_close(gpu.image.cpu(), cpu.image, atol=1e-5, rtol=1e-4)
     gpu.image.sum().backward()
