@@ -1,12 +1,18 @@
 """Adaptive density control of 3DGS: clone, split, prune, opacity reset, with a cap.
 
-The view-space gradient that drives it is normalised to angle: the gradient
-of the loss with respect to the splat's position in pixels (splatting's
-`means2d.grad`) times the camera's pixels per radian (`camera.pixel_scale`),
-i.e. the gradient with respect to the splat's angular position. Doubling the
-resolution halves the per-pixel gradient and doubles the pixels per radian, so
-a threshold means the same at any resolution; for a 90° pinhole face it is
-exactly the NDC gradient the original 3DGS thresholds at 2e-4.
+The view-space gradient that drives it is normalised to angle and to solid
+angle (`gradient_scale`): the gradient of the loss with respect to the splat's
+position in pixels (splatting's `means2d.grad`) times the camera's pixels per
+radian (`camera.pixel_scale`), i.e. the gradient with respect to the splat's
+angular position, then rescaled to the weight an equirectangular image's mean
+loss gives one steradian near its equator. Doubling the resolution halves the
+per-pixel gradient and doubles the pixels per radian, so a threshold means the
+same at any resolution; and since a mean over a narrow crop weighs each
+steradian more than a mean over the whole sphere (a 120° crop 1.6×, a 90° cube
+face 4.9× at its centre), the second factor puts panoramas and perspective
+crops on the same footing: the same splat with the same pixel errors gets the
+same statistic in both. For an equirectangular camera the factor is exactly
+the pixels per radian.
 
 Layout Gaussians stay layout Gaussians: a split samples its children's
 offsets in the plane (the offset's component along the plane normal is
@@ -24,7 +30,22 @@ import torch
 from gaussians.model import Gaussians
 from gaussians.optim import Adam
 
-__all__ = ["DensifyStats", "densify_and_prune", "reset_opacity", "quat_to_rotmat", "DensifyResult"]
+__all__ = ["DensifyStats", "densify_and_prune", "reset_opacity", "quat_to_rotmat", "DensifyResult",
+           "gradient_scale"]
+
+#: The weight a mean loss over an equirectangular image gives one steradian near its equator:
+#: 1 / (W·W/2 pixels) per pixel of (2π/W)² sr = 1 / (2π²), independent of W.
+EQUIRECT_WEIGHT_PER_SR = 1.0 / (2.0 * math.pi**2)
+
+
+def gradient_scale(camera) -> float:
+    """Factor from ‖∂L/∂(splat centre in pixels)‖ of a view rendered with `camera` to the statistic
+    the densification threshold applies to: × pixels per radian (an angular gradient) × the ratio of
+    the equirectangular loss weight per steradian to this camera's at its image centre (a mean over
+    H·W pixels of 1/s² sr each, s = pixels per radian). Equirectangular: exactly s."""
+    s = float(camera.pixel_scale[0])
+    weight_per_sr = s * s / (int(camera.width) * int(camera.height))
+    return s * EQUIRECT_WEIGHT_PER_SR / weight_per_sr
 
 
 def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
@@ -54,11 +75,15 @@ class DensifyStats:
         return cls(z.clone(), z.clone(), z.clone())
 
     @torch.no_grad()
-    def add(self, grad2d: torch.Tensor, visible: torch.Tensor, radii: torch.Tensor, pixel_scale: float) -> None:
-        """Accumulate one rendered view: `grad2d` = means2d.grad [N,2] (pixels), `radii` pixels."""
+    def add(self, grad2d: torch.Tensor, visible: torch.Tensor, radii: torch.Tensor, pixel_scale: float,
+            grad_scale: float | None = None) -> None:
+        """Accumulate one rendered view: `grad2d` = means2d.grad [N,2] (pixels), `radii` pixels,
+        `pixel_scale` pixels per radian; `grad_scale` multiplies ‖grad2d‖ (default `pixel_scale`;
+        the trainer passes `gradient_scale(camera)`)."""
         if grad2d is None:
             return
-        g = torch.linalg.vector_norm(grad2d.to(self.grad_accum.dtype), dim=-1) * float(pixel_scale)
+        scale = float(pixel_scale if grad_scale is None else grad_scale)
+        g = torch.linalg.vector_norm(grad2d.to(self.grad_accum.dtype), dim=-1) * scale
         g = torch.nan_to_num(g, nan=0.0, posinf=0.0, neginf=0.0)
         vis = visible & (radii > 0)
         self.grad_accum += torch.where(vis, g, torch.zeros_like(g))
@@ -76,6 +101,9 @@ class DensifyStats:
     @classmethod
     def from_state(cls, s: dict) -> DensifyStats:
         return cls(s["grad_accum"].clone(), s["count"].clone(), s["max_radius"].clone())
+
+    def to(self, device) -> DensifyStats:
+        return DensifyStats(self.grad_accum.to(device), self.count.to(device), self.max_radius.to(device))
 
 
 @dataclass
@@ -154,7 +182,8 @@ def densify_and_prune(
     if ns:
         k = split_children
         std = scales[s_idx].repeat(k, 1)
-        noise = torch.randn(std.shape, generator=generator, dtype=std.dtype, device=std.device)
+        # drawn on the generator's device (the CPU), so the stream is the same on every device
+        noise = torch.randn(std.shape, generator=generator, dtype=std.dtype).to(std.device)
         local = noise * std
         rot = quat_to_rotmat(T["quats"][s_idx]).repeat(k, 1, 1)
         offset = (rot @ local[:, :, None]).squeeze(-1)

@@ -15,7 +15,7 @@ from dataclasses import dataclass, fields
 
 import torch
 
-__all__ = ["Gaussians", "PARAM_NAMES", "BUFFER_NAMES", "SH_C0", "rgb_to_sh", "sh_to_rgb", "render"]
+__all__ = ["Gaussians", "PARAM_NAMES", "BUFFER_NAMES", "SH_C0", "rgb_to_sh", "sh_to_rgb", "render", "render_stitched"]
 
 SH_C0 = 0.28209479177387814
 
@@ -176,6 +176,22 @@ class Gaussians:
         return g
 
 
+def _splat_args(g: Gaussians, viewmat, background, sh_degree: int | None):
+    """The splatting arguments of `g`: (means, quats, scales, opacities, colors, viewmat), the SH
+    degree and the background, as tensors of the model's dtype and device."""
+    degree = g.sh_degree if sh_degree is None else int(sh_degree)
+    if not 0 <= degree <= g.sh_degree:
+        raise ValueError(f"sh_degree {degree} outside 0..{g.sh_degree} (the bands this model holds)")
+    k = (degree + 1) ** 2
+    # only the bands in use enter the graph, so the others get no gradient (and no optimiser work)
+    colors = g.sh_dc if k == 1 else torch.cat([g.sh_dc, g.sh_rest[:, : k - 1]], dim=1)
+    viewmat = torch.as_tensor(viewmat, dtype=g.means.dtype, device=g.means.device)
+    if background is not None:
+        background = torch.as_tensor(background, dtype=g.means.dtype, device=g.means.device)
+    args = (g.means, g.quats, torch.exp(g.log_scales), torch.sigmoid(g.opacity_logits), colors, viewmat)
+    return args, degree, background
+
+
 def render(
     g: Gaussians,
     viewmat: torch.Tensor,
@@ -191,25 +207,25 @@ def render(
     Returns splatting's output (.image [H,W,3], .alpha, .depth, .means2d, .radii, ...)."""
     import splatting
 
-    degree = g.sh_degree if sh_degree is None else int(sh_degree)
-    if not 0 <= degree <= g.sh_degree:
-        raise ValueError(f"sh_degree {degree} outside 0..{g.sh_degree} (the bands this model holds)")
-    k = (degree + 1) ** 2
-    # only the bands in use enter the graph, so the others get no gradient (and no optimiser work)
-    colors = g.sh_dc if k == 1 else torch.cat([g.sh_dc, g.sh_rest[:, : k - 1]], dim=1)
-    viewmat = torch.as_tensor(viewmat, dtype=g.means.dtype, device=g.means.device)
-    if background is not None:
-        background = torch.as_tensor(background, dtype=g.means.dtype, device=g.means.device)
-    return splatting.render(
-        g.means,
-        g.quats,
-        torch.exp(g.log_scales),
-        torch.sigmoid(g.opacity_logits),
-        colors,
-        viewmat,
-        camera,
-        sh_degree=degree,
-        background=background,
-        backend=backend,
-        **kwargs,
-    )
+    args, degree, background = _splat_args(g, viewmat, background, sh_degree)
+    return splatting.render(*args, camera, sh_degree=degree, background=background, backend=backend, **kwargs)
+
+
+def render_stitched(
+    g: Gaussians,
+    viewmat: torch.Tensor,
+    height: int,
+    width: int,
+    rig,
+    backend: str | None = None,
+    background=None,
+    sh_degree: int | None = None,
+    **kwargs,
+):
+    """An equirectangular `height` × `width` image of `g` stitched from the crops of `rig` (a
+    splatting.PerspectiveRig): the perspective baseline's panorama (splatting.render_stitched)."""
+    import splatting
+
+    args, degree, background = _splat_args(g, viewmat, background, sh_degree)
+    return splatting.render_stitched(*args, height, width, rig, sh_degree=degree, background=background,
+                                     backend=backend, **kwargs)

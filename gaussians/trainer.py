@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from gaussians.appearance import Appearance
-from gaussians.densify import DensifyStats, densify_and_prune, reset_opacity
+from gaussians.densify import DensifyStats, densify_and_prune, gradient_scale, reset_opacity
 from gaussians.losses import layout_loss, photometric_loss, psnr
 from gaussians.model import PARAM_NAMES, Gaussians, render
 from gaussians.optim import Adam, expon_lr
@@ -97,7 +97,7 @@ class TrainConfig:
 
 @dataclass
 class TrainView:
-    """One training image: a panorama (EquirectCamera) or a cube face (PinholeCamera)."""
+    """One training image: a panorama (EquirectCamera) or a perspective crop (PinholeCamera)."""
 
     name: str
     image: torch.Tensor  # [H,W,3] float in [0,1]
@@ -219,7 +219,7 @@ class Trainer:
 
             if it < cfg.densify_until:
                 self.stats.add(out.means2d.grad if out.means2d.requires_grad else None, out.visible, out.radii,
-                               view.camera.pixel_scale[0])
+                               view.camera.pixel_scale[0], gradient_scale(view.camera))
                 if it >= cfg.densify_from and it % cfg.densify_every == 0:
                     after_reset = cfg.opacity_reset_every > 0 and it > cfg.opacity_reset_every
                     res = densify_and_prune(

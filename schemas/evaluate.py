@@ -51,3 +51,6 @@ class EvaluateOutput(BaseModel):
     device: str
     threads: int = Field(description="torch.get_num_threads() while rendering.")
     num_gaussians: int
+    stitched: str | None = Field(
+        default=None, description="How the test panoramas were made when the model was trained on crops: "
+                                  "stitched from rendered crops (e.g. '8 crops of 120°, 64 px'); None = rendered directly.")

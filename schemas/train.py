@@ -7,6 +7,28 @@ from typing import Literal
 from pydantic import BaseModel, Field
 
 
+class CropRig(BaseModel):
+    """The perspective crops a `crops` or `cubemap` model was trained on (a splatting.PerspectiveRig):
+    the evaluate stage renders the same crops, their size scaled with the panorama, and stitches them."""
+
+    size: int = Field(description="Crop side in pixels at the training resolution.")
+    fov_deg: float
+    names: list[str]
+    axes: list[list[list[float]]] = Field(description="Per crop, its x, y, z axes in the panorama camera frame.")
+
+    @classmethod
+    def of(cls, rig) -> CropRig:
+        return cls(size=rig.size, fov_deg=rig.fov_deg, names=list(rig.names),
+                   axes=[[list(a) for a in axes] for axes in rig.axes])
+
+    def rig(self, size: int | None = None):
+        """The splatting.PerspectiveRig, with crops of `size` pixels (default: as trained)."""
+        import splatting
+
+        axes = tuple(tuple(tuple(float(c) for c in a) for a in ax) for ax in self.axes)
+        return splatting.PerspectiveRig(int(size or self.size), self.fov_deg, axes, tuple(self.names))
+
+
 class TrainOutput(BaseModel):
     ply: str = Field(description="point_cloud.ply in the standard 3DGS layout (see docs/training.md).")
     log: str = Field(description="train_log.jsonl: iteration, loss terms, PSNR, Gaussian count, wall time.")
@@ -16,9 +38,14 @@ class TrainOutput(BaseModel):
     resolution: tuple[int, int] = Field(description="Training (height, width).")
     sh_degree: int
     init: Literal["random", "layout", "depth", "layout+depth"]
-    projection: Literal["360", "cubemap"]
+    projection: Literal["360", "crops", "cubemap"]
+    crops: CropRig | None = Field(default=None, description="The crops of a crops/cubemap model (None: 360).")
+    train_images: int | None = Field(
+        default=None, description="Training images the iterations draw from: panoramas, or their crops; "
+                                  "an iteration is one optimiser step on one of them.")
     layout_reg: bool
     backend: str
+    device: str = Field(default="cpu", description="torch device the model was trained on (train.device).")
     final_train_psnr: float | None = None
     preset: Literal["fast", "paper", "quality"] = "fast"
     lambda_layout: float | None = Field(default=None, description="λ3 actually used (0 with layout_reg off).")

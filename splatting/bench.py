@@ -25,7 +25,8 @@ import torch
 
 from .cameras import EquirectCamera
 from .reference import ray_max_alpha
-from .render import render, render_cubemap
+from .render import render
+from .stitch import render_cubemap
 
 RESOLUTIONS = ((128, 256), (256, 512), (512, 1024))
 COUNTS = (20_000, 100_000, 300_000)

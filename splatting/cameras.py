@@ -17,7 +17,8 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["EquirectCamera", "PinholeCamera", "cubemap_faces", "CUBEMAP_FACE_NAMES", "CUBEMAP_FACE_AXES"]
+__all__ = ["EquirectCamera", "PinholeCamera", "PerspectiveRig", "crop_rig", "cubemap_rig", "cubemap_faces",
+           "CUBEMAP_FACE_NAMES", "CUBEMAP_FACE_AXES", "PAPER_CROPS"]
 
 
 @dataclass(frozen=True)
@@ -108,6 +109,108 @@ CUBEMAP_FACE_AXES = {
 }
 
 
+@dataclass(frozen=True)
+class PerspectiveRig:
+    """Square pinhole crops sharing the panorama's centre: the cameras of the perspective
+    ("3D-GS") baseline, whose renders :func:`splatting.render_stitched` blends back into a panorama.
+
+    ``axes[i]`` holds crop i's x, y, z axes in the panorama camera frame (the rows of its
+    camera-from-panorama rotation); every crop is ``size`` × ``size`` pixels with a ``fov_deg``
+    field of view across (and down) the image. Hashable, so stitch tables can be cached per rig.
+    """
+
+    size: int
+    fov_deg: float
+    axes: tuple[tuple[tuple[float, float, float], ...], ...]
+    names: tuple[str, ...]
+
+    def __post_init__(self):
+        if int(self.size) < 2:
+            raise ValueError(f"crops need at least 2x2 pixels, got {self.size}")
+        if not 0.0 < float(self.fov_deg) < 180.0:
+            raise ValueError(f"a pinhole crop's field of view must be in (0, 180) degrees, got {self.fov_deg}")
+        if not self.axes or len(self.axes) != len(self.names):
+            raise ValueError("a rig needs at least one crop and one name per crop")
+
+    def __len__(self) -> int:
+        return len(self.axes)
+
+    @property
+    def camera(self) -> PinholeCamera:
+        """The crops' shared intrinsics (principal point at the image centre)."""
+        s = int(self.size)
+        f = s / (2.0 * self.tan_half_fov)
+        return PinholeCamera(fx=f, fy=f, cx=s / 2.0, cy=s / 2.0, width=s, height=s)
+
+    @property
+    def tan_half_fov(self) -> float:
+        """Half the image-plane extent of a crop (exactly 1 for the cube's 90°)."""
+        return 1.0 if float(self.fov_deg) == 90.0 else math.tan(math.radians(self.fov_deg) / 2.0)
+
+    def rotations(self, dtype=torch.float64, device="cpu") -> torch.Tensor:
+        """[K, 3, 3] camera-from-panorama rotations."""
+        return torch.tensor(self.axes, dtype=dtype, device=device)
+
+    def crops(self, dtype=torch.float32, device="cpu") -> list[tuple[torch.Tensor, PinholeCamera]]:
+        """``(viewmat, camera)`` per crop; ``viewmat`` is a 4×4 camera-from-panorama rotation: render a
+        crop of a panorama whose world-to-camera matrix is ``V`` with ``viewmat @ V``."""
+        cam = self.camera
+        out = []
+        for rot in self.rotations(dtype, device):
+            m = torch.eye(4, dtype=dtype, device=device)
+            m[:3, :3] = rot
+            out.append((m, cam))
+        return out
+
+
+#: The paper's perspective baseline (Bai et al., §4): eight crops with a 120° field of view at
+#: elevations −45°, 0° and 45°, read as 2 + 4 + 2 crops (docs/training.md says why).
+PAPER_CROPS = {"fov_deg": 120.0, "elevations": (-45.0, 0.0, 45.0), "counts": (2, 4, 2)}
+
+
+def _cos_sin_deg(deg: float) -> tuple[float, float]:
+    """cos and sin of an angle in degrees, exact at multiples of 90° (so the cube faces come out
+    as exact axis permutations)."""
+    q, r = divmod(float(deg), 90.0)
+    if r == 0.0:
+        return ((1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0))[int(q) % 4]
+    a = math.radians(deg)
+    return math.cos(a), math.sin(a)
+
+
+def crop_rig(size: int, fov_deg: float = PAPER_CROPS["fov_deg"],
+             elevations: tuple[float, ...] = PAPER_CROPS["elevations"],
+             counts: tuple[int, ...] = PAPER_CROPS["counts"], names: tuple[str, ...] | None = None
+             ) -> PerspectiveRig:
+    """Rings of crops: ``counts[k]`` crops at elevation ``elevations[k]`` (degrees, up positive),
+    their yaws evenly spread from 0 (0°, 360°/n, ...; yaw = longitude of the crop's centre), each
+    crop level (its x axis horizontal). Ordered ring by ring, yaw increasing. The default is the
+    paper's 2 + 4 + 2 crops of 120°; ``crop_rig(s, 90, (0, 90, -90), (4, 1, 1))`` is the cubemap."""
+    if len(elevations) != len(counts) or not elevations:
+        raise ValueError(f"one crop count per elevation, got elevations {list(elevations)}, counts {list(counts)}")
+    axes, auto_names = [], []
+    for elev, n in zip(elevations, counts):
+        if not -90.0 <= float(elev) <= 90.0:
+            raise ValueError(f"crop elevations must lie in [-90, 90] degrees, got {elev}")
+        if int(n) < 1:
+            raise ValueError(f"every elevation needs at least one crop, got {n}")
+        ce, se = _cos_sin_deg(elev)
+        for j in range(int(n)):
+            yaw = 360.0 * j / int(n)
+            cy, sy = _cos_sin_deg(yaw)
+            z = (ce * sy, -se, ce * cy)  # the crop's viewing direction (DESIGN.md angles)
+            x = (cy, 0.0, -sy)  # horizontal, to the right of z
+            y = (z[1] * x[2] - z[2] * x[1], z[2] * x[0] - z[0] * x[2], z[0] * x[1] - z[1] * x[0])  # z × x
+            axes.append((x, y, z))
+            auto_names.append(f"el{float(elev):+g}_yaw{yaw:g}")
+    return PerspectiveRig(int(size), float(fov_deg), tuple(axes), tuple(names) if names else tuple(auto_names))
+
+
+def cubemap_rig(face_size: int) -> PerspectiveRig:
+    """The six 90° cube faces as a rig: front (+z), right (+x), back (−z), left (−x), up (−y), down (+y)."""
+    return crop_rig(face_size, 90.0, (0.0, 90.0, -90.0), (4, 1, 1), names=CUBEMAP_FACE_NAMES)
+
+
 def cubemap_faces(face_size: int, dtype=torch.float32, device="cpu"):
     """The six 90° cube faces: list of ``(viewmat, PinholeCamera)`` in the order
     front (+z), right (+x), back (−z), left (−x), up (−y), down (+y).
@@ -115,12 +218,4 @@ def cubemap_faces(face_size: int, dtype=torch.float32, device="cpu"):
     ``viewmat`` is a 4×4 camera-from-panorama rotation: render a face of a panorama
     whose world-to-camera matrix is ``V`` with ``viewmat @ V``.
     """
-    face_size = int(face_size)
-    f = face_size / 2.0
-    cam = PinholeCamera(fx=f, fy=f, cx=face_size / 2.0, cy=face_size / 2.0, width=face_size, height=face_size)
-    out = []
-    for name in CUBEMAP_FACE_NAMES:
-        m = torch.eye(4, dtype=dtype, device=device)
-        m[:3, :3] = torch.tensor(CUBEMAP_FACE_AXES[name], dtype=dtype, device=device)
-        out.append((m, cam))
-    return out
+    return cubemap_rig(int(face_size)).crops(dtype, device)

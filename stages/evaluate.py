@@ -162,6 +162,14 @@ def load_gt_depth(path: Path, size: tuple[int, int]) -> np.ndarray:
     return d
 
 
+def stitch_rig(tdata, size: tuple[int, int]):
+    """The crops a perspective-trained model's test panoramas are stitched from (None for 360), their
+    size scaled with the evaluation height: the baseline is evaluated as the paper states it."""
+    if tdata.crops is None:
+        return None
+    return tdata.crops.rig(max(2, round(tdata.crops.size * size[0] / tdata.resolution[0])))
+
+
 def train_background(train_dir: Path) -> tuple[float, float, float] | None:
     """The background the model was trained against (train artifact's meta.params), if recorded."""
     import json
@@ -218,7 +226,8 @@ def run(ctx: StageContext) -> EvaluateOutput:
                 raise PanoError(img_path, "unreadable image")
             size = eval_size(p, tdata.resolution, native.shape[:2])
             gt = read_rgb(img_path, size=size)
-            r = render_pose(g, v.pose_matrix, equirect_camera(*size), backend=p.backend, background=background)
+            r = render_pose(g, v.pose_matrix, equirect_camera(*size), backend=p.backend, background=background,
+                            rig=stitch_rig(tdata, size))
             backend = r.backend
             mask = valid_mask(ctx.scene, v, *size)
             m = view_metrics(r.image, gt, lpips_model, mask)
@@ -253,7 +262,7 @@ def run(ctx: StageContext) -> EvaluateOutput:
         times = []
         for _ in range(p.fps_repeats):
             t0 = time.perf_counter()
-            render_pose(g, pose, cam, backend=p.backend, background=background)
+            render_pose(g, pose, cam, backend=p.backend, background=background, rig=stitch_rig(tdata, size))
             times.append(time.perf_counter() - t0)
         fps = 1.0 / max(statistics.median(times), 1e-9)
         threads = torch.get_num_threads()
@@ -278,4 +287,6 @@ def run(ctx: StageContext) -> EvaluateOutput:
         device=device,
         threads=threads,
         num_gaussians=len(g),
+        stitched=None if tdata.crops is None else
+        f"{len(tdata.crops.names)} crops of {tdata.crops.fov_deg:g}°, {stitch_rig(tdata, size).size} px",
     )

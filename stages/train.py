@@ -19,9 +19,10 @@ from typing import Literal
 import cv2
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 from rich.markup import escape
 
+import splatting
 from gaussians.init import from_cloud, random_points
 from gaussians.model import Gaussians
 from gaussians.ply import save_ply
@@ -32,7 +33,7 @@ from pipeline.errors import PanoError
 from pipeline.scene_loader import valid_mask
 from pipeline.stage import StageContext
 from schemas.scene import Scene, View
-from schemas.train import TrainOutput
+from schemas.train import CropRig, TrainOutput
 
 Output = TrainOutput
 
@@ -62,8 +63,16 @@ class Params(BaseModel):
     init: Literal["auto", "random", "layout", "depth", "layout+depth"] = Field(
         default="auto",
         description="auto = layout+depth with the align stage, layout with sampling only, random otherwise.")
-    projection: Literal["360", "cubemap"] = Field(
-        default="360", description="360 = equirectangular splatting; cubemap = six 90° pinhole faces (3D-GS).")
+    projection: Literal["360", "crops", "cubemap"] = Field(
+        default="360", description="360 = equirectangular splatting; crops = the paper's 3D-GS baseline "
+                                   "(pinhole crops, crop_*); cubemap = six 90° faces of W/4.")
+    crop_fov: float = Field(default=120.0, gt=0, lt=180, description="Field of view of a crop (degrees).")
+    crop_elevations: tuple[float, ...] = Field(
+        default=(-45.0, 0.0, 45.0), description="Elevations of the crop rings (degrees, up positive).")
+    crop_counts: tuple[int, ...] = Field(
+        default=(2, 4, 2), description="Crops per elevation ring, yaws evenly spread from 0 (paper: 8 in all).")
+    crop_size: int | None = Field(
+        default=None, ge=8, description="Crop side in pixels (None = the training height: 512 at 512x1024).")
     layout_reg: bool = Field(default=True, description="L_layout on/off (ablation).")
     lambda_l1: float = Field(default=0.8, ge=0)
     lambda_dssim: float = Field(default=0.2, ge=0)
@@ -112,6 +121,20 @@ class Params(BaseModel):
     def resolved(self, key: str):
         v = getattr(self, key)
         return PRESETS[self.preset][key] if v is None else v
+
+    @model_validator(mode="after")
+    def _crops_form_rings(self):
+        splatting.crop_rig(8, self.crop_fov, self.crop_elevations, self.crop_counts)  # ValueError says what is wrong
+        return self
+
+    def rig(self, height: int) -> splatting.PerspectiveRig | None:
+        """The perspective crops this projection trains on at panorama height `height` (None for 360)."""
+        if self.projection == "cubemap":
+            return splatting.cubemap_rig(max(height // 2, 2))  # face W/4
+        if self.projection == "crops":
+            return splatting.crop_rig(self.crop_size or height, self.crop_fov, self.crop_elevations,
+                                      self.crop_counts)
+        return None
 
 
 def skip_reason(scene: Scene, params: Params) -> str | None:
@@ -171,15 +194,15 @@ def subsample_cloud(cloud: dict, max_points: int, seed: int) -> dict:
     return {k: v[idx] for k, v in cloud.items()}
 
 
-def cube_face_image(pano: np.ndarray, face_viewmat: np.ndarray, camera) -> np.ndarray:
-    """Resample a cube face (splatting.cubemap_faces' rotation and PinholeCamera) from an
+def crop_image(pano: np.ndarray, crop_viewmat: np.ndarray, camera) -> np.ndarray:
+    """Resample a perspective crop (a PerspectiveRig crop's rotation and PinholeCamera) from an
     equirectangular image with cv2.remap (bilinear, wrapping across the ±180° seam)."""
     h, w = pano.shape[:2]
     fh, fw = int(camera.height), int(camera.width)
     c, r = np.meshgrid(np.arange(fw) + 0.5, np.arange(fh) + 0.5)
-    d_face = np.stack([(c - camera.cx) / camera.fx, (r - camera.cy) / camera.fy, np.ones_like(c)], -1)
-    rot = np.asarray(face_viewmat, dtype=np.float64)[:3, :3]
-    d_pano = d_face @ rot  # rows of rot are the face axes in the panorama frame: d_pano = rotᵀ d_face
+    d_crop = np.stack([(c - camera.cx) / camera.fx, (r - camera.cy) / camera.fy, np.ones_like(c)], -1)
+    rot = np.asarray(crop_viewmat, dtype=np.float64)[:3, :3]
+    d_pano = d_crop @ rot  # rows of rot are the crop axes in the panorama frame: d_pano = rotᵀ d_crop
     phi, theta = dirs_to_angles(d_pano)
     col, row = angles_to_pixel(phi, theta, h, w)
     padded = np.concatenate([pano[:, -1:], pano, pano[:, :1]], axis=1)  # one wrapped column each side
@@ -189,11 +212,11 @@ def cube_face_image(pano: np.ndarray, face_viewmat: np.ndarray, camera) -> np.nd
 
 
 def build_views(images: dict[str, np.ndarray], viewmats: dict[str, np.ndarray], projection: str,
-                masks: dict[str, np.ndarray | None] | None = None) -> list[TrainView]:
-    """Training views: one equirectangular view per panorama, or six cube faces (face = W/4);
-    `masks` ([H,W] bool per view, None = all valid) are resampled to the faces like the images."""
-    import splatting
-
+                masks: dict[str, np.ndarray | None] | None = None,
+                rig: splatting.PerspectiveRig | None = None) -> list[TrainView]:
+    """Training views: one equirectangular view per panorama, or the crops of `rig` (default: the
+    projection's default rig, Params().rig) named `<panorama>/<crop>`; `masks` ([H,W] bool per view,
+    None = all valid) are resampled to the crops like the images."""
     out = []
     for name, img in images.items():
         vm = torch.as_tensor(viewmats[name], dtype=torch.float32)
@@ -204,17 +227,18 @@ def build_views(images: dict[str, np.ndarray], viewmats: dict[str, np.ndarray], 
                                  splatting.EquirectCamera(h, w),
                                  None if mask is None else torch.from_numpy(np.ascontiguousarray(mask))))
             continue
-        for face, (fv, cam) in zip(splatting.CUBEMAP_FACE_NAMES, splatting.cubemap_faces(max(w // 4, 2))):
-            gt = cube_face_image(img, fv.numpy(), cam)
-            face_mask = None
+        crops = rig or Params(projection=projection).rig(h)
+        for crop, (cv, cam) in zip(crops.names, crops.crops()):
+            gt = crop_image(img, cv.numpy(), cam)
+            crop_mask = None
             if mask is not None:
-                # a face pixel is valid when the bilinear sample draws only on valid panorama pixels
-                m = cube_face_image(np.repeat(mask[..., None].astype(np.float32), 3, axis=2), fv.numpy(), cam)
-                face_mask = torch.from_numpy(np.ascontiguousarray(m[..., 0] > 0.999))
-                if not bool(face_mask.any()):
-                    continue  # a face wholly masked out (the nadir face under a big cap) is not trained on
-            out.append(TrainView(f"{name}/{face}", torch.from_numpy(np.ascontiguousarray(gt)), fv @ vm, cam,
-                                 face_mask))
+                # a crop pixel is valid when the bilinear sample draws only on valid panorama pixels
+                m = crop_image(np.repeat(mask[..., None].astype(np.float32), 3, axis=2), cv.numpy(), cam)
+                crop_mask = torch.from_numpy(np.ascontiguousarray(m[..., 0] > 0.999))
+                if not bool(crop_mask.any()):
+                    continue  # a crop wholly masked out (the nadir face under a big cap) is not trained on
+            out.append(TrainView(f"{name}/{crop}", torch.from_numpy(np.ascontiguousarray(gt)), cv @ vm, cam,
+                                 crop_mask))
     return out
 
 
@@ -366,7 +390,13 @@ def run(ctx: StageContext) -> TrainOutput:
     height = int(p.resolved("height"))
     images = load_images(ctx.scene, views, height, warn=ctx.warn)
     masks = {v.name: valid_mask(ctx.scene, v, height, 2 * height) for v in views}
-    train_views = build_views(images, {v.name: v.viewmat for v in views}, p.projection, masks)
+    rig = p.rig(height)
+    if rig is not None:
+        try:  # the crops must see every direction, or the stitched test panoramas would have holes
+            splatting.stitch_table(height, 2 * height, rig)
+        except ValueError as e:
+            raise PanoError("train.crop_fov", str(e)) from None
+    train_views = build_views(images, {v.name: v.viewmat for v in views}, p.projection, masks, rig)
     g, init = initial_gaussians(ctx, p, views)
     extent = p.extent if p.extent is not None else scene_extent(g.means)
     cfg = make_config(p, len(views), extent)
@@ -444,6 +474,8 @@ def run(ctx: StageContext) -> TrainOutput:
         sh_degree=final.sh_degree,
         init=init,
         projection=p.projection,
+        crops=None if rig is None else CropRig.of(rig),
+        train_images=len(train_views),
         layout_reg=p.layout_reg,
         backend=_backend_name(p.backend),
         final_train_psnr=final_psnr,

@@ -116,7 +116,7 @@ def test_cube_face_resampling_matches_the_panorama():
     d = np.stack([np.cos(TH) * np.sin(P), -np.sin(TH), np.cos(TH) * np.cos(P)], -1)
     pano = (0.5 + 0.5 * d * np.array([0.9, 0.8, 0.7])).astype(np.float32)
     for fv, cam in splatting.cubemap_faces(32):
-        face = T.cube_face_image(pano, fv.numpy(), cam)
+        face = T.crop_image(pano, fv.numpy(), cam)
         dirs = cam.pixel_dirs(dtype=torch.float64).numpy()
         dirs = dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)
         expect = 0.5 + 0.5 * (dirs @ fv.numpy()[:3, :3]) * np.array([0.9, 0.8, 0.7])
