@@ -169,6 +169,20 @@ def select_stages(registry: dict[str, StageSpec], target: str | None = None, unt
 _KIND_FIELDS = {"images": "image", "layout": "layout", "depth": "depth", "gt": "gt_depth", "masks": "mask"}
 
 
+def complete_scene(scene: Scene, run_dir: Path, registry: dict[str, StageSpec], stage: str | None = None) -> Scene:
+    """`scene` completed by the artifacts in `run_dir` of the scene-completing stages upstream of
+    `stage` (all of them when None), in DAG order; a stage without an artifact (not run yet)
+    leaves the scene as it is. Completing only fills in what the scene leaves out, so the artifact
+    of a stage the scene no longer calls for changes nothing."""
+    upstream = ancestors(registry, stage) if stage is not None else set(registry)
+    for name in topological_order(registry):
+        spec = registry[name]
+        if spec.completes_scene is None or name not in upstream or not (run_dir / name / ARTIFACT).is_file():
+            continue
+        scene = spec.completes_scene(scene, load_artifact(run_dir / name, spec.output))
+    return scene
+
+
 class Engine:
     def __init__(
         self,
@@ -354,8 +368,16 @@ class Engine:
             return StageResult(name, "cached", p.last_duration_s or 0.0)
         return self._run_stage(p, plans, resume=resume)
 
+    def completed_scene(self, stage: str | None = None) -> Scene:
+        """The scene as the stages upstream of `stage` (every stage when None) completed it, from
+        their artifacts in the run folder (see StageSpec.completes_scene)."""
+        return complete_scene(self.scene, self.out_dir, self.registry, stage)
+
     def _run_stage(self, p: StagePlan, plans: dict[str, StagePlan], resume: bool) -> StageResult:
         spec = self.registry[p.name]
+        # the plan keyed the stage on the scene as given plus its upstream keys; it runs on the
+        # scene its upstream stages completed
+        scene = self.completed_scene(p.name)
         inputs: dict[str, Loaded | None] = {}
         for dep in spec.inputs:
             if plans[dep].state == "skipped":
@@ -369,7 +391,7 @@ class Engine:
         try:
             with atomic_folder(self.out_dir / p.name) as tmp:
                 ctx = StageContext(
-                    scene=self.scene,
+                    scene=scene,
                     params=p.params,
                     inputs=inputs,
                     out_dir=tmp,

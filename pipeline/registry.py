@@ -27,9 +27,15 @@ def torch_resources(params) -> dict[str, float]:
 
 @cache
 def build_registry() -> dict[str, StageSpec]:
-    from stages import align, depth, evaluate, layout, sampling, train, union
+    from stages import align, depth, evaluate, layout, poses, sampling, train, union
 
     specs = [
+        StageSpec(
+            "poses", poses.Params, poses.Output, poses.run, scene_inputs=("images", "masks"),
+            skip_reason=poses.skip_reason, completes_scene=poses.complete_scene,
+            code=("stages.poses", "sfm", "panogeom"),
+            description="camera poses from the panoramas (structure from motion), upright and metric",
+        ),
         StageSpec(
             "layout", layout.Params, layout.Output, layout.run, reads_views=layout.selected_views,
             scene_inputs=("images", "layout"), skip_reason=layout.skip_reason,
@@ -44,31 +50,33 @@ def build_registry() -> dict[str, StageSpec]:
         ),
         StageSpec(
             "union", union.Params, union.Output, union.run, reads_views=train_views,
-            inputs={"layout": True}, scene_inputs=(),
+            inputs={"poses": False, "layout": True}, scene_inputs=(),
             code=("stages.union",),
             description="union of the per-view floor plans in the world frame",
         ),
         StageSpec(
             "sampling", sampling.Params, sampling.Output, sampling.run, reads_views=train_views,
-            inputs={"union": True, "layout": True}, scene_inputs=("images",),
+            inputs={"poses": False, "union": True, "layout": True}, scene_inputs=("images",),
             code=("stages.sampling", "stages.union", "stages.cloud_io", "panogeom"),
             description="box sampling of the floor plan into a layout point cloud",
         ),
         StageSpec(
             "align", align.Params, align.Output, align.run, reads_views=train_views,
-            inputs={"depth": True, "layout": False, "sampling": False}, scene_inputs=("images", "masks"),
+            inputs={"poses": False, "depth": True, "layout": False, "sampling": False},
+            scene_inputs=("images", "masks"),
             code=("stages.align", "stages.cloud_io", "panogeom"),
             description="depth clouds scaled to the layout and merged with it (open3d)",
         ),
         StageSpec(
             "train", train.Params, train.Output, train.run, reads_views=train_views,
-            inputs={"align": False, "sampling": False, "union": False}, scene_inputs=("images", "masks"),
+            inputs={"poses": False, "align": False, "sampling": False, "union": False},
+            scene_inputs=("images", "masks"),
             code=("stages.train", "stages.cloud_io", "gaussians", "splatting"),
             description="360° Gaussian splatting optimisation", resources=torch_resources,
         ),
         StageSpec(
             "evaluate", evaluate.Params, evaluate.Output, evaluate.run,
-            inputs={"train": True, "union": False}, scene_inputs=("images", "gt", "masks"),
+            inputs={"poses": False, "train": True, "union": False}, scene_inputs=("images", "gt", "masks"),
             code=("stages.evaluate", "evaluation", "gaussians", "splatting"),
             description="metrics on the held-out views", resources=torch_resources,
         ),

@@ -47,6 +47,9 @@ class StageSpec:
     #: their content hash is the stage's code version.
     code: tuple[str, ...] = ()
     description: str = ""
+    #: For a stage whose artifact fills in what the scene left out (poses): (scene, its artifact) ->
+    #: the completed scene. Every stage downstream of it runs on the completed scene.
+    completes_scene: Callable[[Scene, Loaded], Scene] | None = None
     #: What one run of the stage occupies, for a batch executor: {"CPU": n, "GPU": g}.
     resources: Callable[[BaseModel], dict[str, float]] = field(default=lambda params: {"CPU": 1.0})
 

@@ -27,7 +27,9 @@ class View(BaseModel):
 
     name: str = Field(min_length=1, description="Unique view name, also the stem of its files.")
     image: str = Field(description="Equirectangular image (2:1), relative to the scene folder.")
-    pose: Matrix4 = Field(description="Camera-to-world 4x4, row-major, metres; OpenCV axes, y down.")
+    pose: Matrix4 | None = Field(
+        default=None, description="Camera-to-world 4x4, row-major, metres; OpenCV axes, y down. Left out, "
+                                  "the poses stage recovers it from the panoramas.")
     split: Literal["train", "test"] = "train"
     camera_height: float | None = Field(
         default=None, gt=0, le=MAX_CAMERA_HEIGHT, description="Camera height above the floor in metres, where known."
@@ -57,7 +59,9 @@ class View(BaseModel):
 
     @field_validator("pose")
     @classmethod
-    def _rigid(cls, pose: Matrix4) -> Matrix4:
+    def _rigid(cls, pose: Matrix4 | None) -> Matrix4 | None:
+        if pose is None:
+            return None
         m = np.asarray(pose, dtype=np.float64)
         if m.shape != (4, 4):
             raise ValueError(f"must be 4x4, got shape {list(m.shape)}")
@@ -75,6 +79,8 @@ class View(BaseModel):
 
     @property
     def pose_matrix(self) -> np.ndarray:
+        if self.pose is None:
+            raise ValueError(f"view {self.name!r} has no pose: the poses stage recovers it (pano-pipe run poses)")
         return np.asarray(self.pose, dtype=np.float64)
 
     @property
@@ -135,6 +141,9 @@ class SceneManifest(BaseModel):
     def test_views(self) -> list[View]:
         return [v for v in self.views if v.split == "test"]
 
+    def unposed_views(self) -> list[View]:
+        return [v for v in self.views if v.pose is None]
+
     def view(self, name: str) -> View:
         for v in self.views:
             if v.name == name:
@@ -162,6 +171,14 @@ class Scene(BaseModel):
     # outside the scene folder ('..', absolute paths, symlinks pointing out).
     def path(self, rel: str, named_by: str | None = None) -> Path:
         return scene_file(self.root, rel, named_by)
+
+    def with_poses(self, poses: dict[str, Matrix4]) -> Scene:
+        """This scene with the missing poses filled in from `poses` (view name -> camera-to-world);
+        a pose the manifest gives is kept, and a view left without one is left out."""
+        views = [v.model_copy(update={"pose": poses[v.name]}) if v.pose is None and v.name in poses else v
+                 for v in self.manifest.views]
+        manifest = self.manifest.model_copy(update={"views": [v for v in views if v.pose is not None]})
+        return Scene(root=self.root, manifest=manifest)
 
     def image_path(self, view: View) -> Path:
         return self.path(view.image, f"view {view.name!r} image")

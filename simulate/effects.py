@@ -24,7 +24,10 @@ from shapely.prepared import prep
 from panogeom.equirect import column_longitudes, row_latitudes
 from simulate.geometry import FURNITURE_CAMERA_CLEARANCE, Box, Camera, World
 
-EFFECTS = ("texture", "furniture", "shading", "noise", "exposure", "tripod", "aa")
+EFFECTS = ("texture", "furniture", "shading", "noise", "exposure", "tripod", "aa", "detail")
+#: Effects that `all` leaves out: they change what every existing scene looks like, so a scene
+#: gets them only by naming them.
+OPT_IN_EFFECTS = frozenset({"detail"})
 
 # Mean albedo of each material: also the flat colour used when `texture` is off.
 MATERIAL_RGB = {
@@ -43,7 +46,7 @@ def _smoothstep(e0: float, e1: float, x: np.ndarray) -> np.ndarray:
     return t * t * (3.0 - 2.0 * t)
 
 
-def _hash(i: np.ndarray, j: np.ndarray, seed: int = 0) -> np.ndarray:
+def _hash(i: np.ndarray, j: np.ndarray, seed: int | np.ndarray = 0) -> np.ndarray:
     """Deterministic pseudo-random value in [0,1) per integer cell (i, j)."""
     h = (i.astype(np.int64) * 73856093) ^ (j.astype(np.int64) * 19349663) ^ (seed * 83492791)
     h = (h ^ (h >> 13)) * 1274126177
@@ -127,6 +130,22 @@ def texture(kind: np.ndarray, uv: np.ndarray, albedo: np.ndarray) -> np.ndarray:
     return np.clip(out, 0.0, 1.0, out=out)
 
 
+DETAIL_CELLS_M = (0.12, 0.05, 0.02)  # octaves of the detail noise: blobs SIFT finds at 256..1024 px
+
+
+def detail(surface: np.ndarray, uv: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+    """Albedo [N,3] with fine, non-repeating detail: multi-octave value noise in the surface's
+    texture coordinates `uv` (metres), seeded per surface id `surface` [N] so no two surfaces
+    look alike. Real rooms have such detail (scuffs, grain, clutter); plain paint and periodic
+    wallpaper give structure from motion nothing to match, so scenes posed by SfM need it."""
+    u = uv[:, 0].astype(np.float64)
+    v = uv[:, 1].astype(np.float64)
+    seed = surface.astype(np.int64)
+    noise = sum(_value_noise(u, v, cell, seed + 101 * k) for k, cell in enumerate(DETAIL_CELLS_M))
+    gain = 0.45 + 1.1 * _smoothstep(0.6, 2.4, noise)  # contrast stretched: dark and light blotches
+    return np.clip(albedo * gain[:, None].astype(albedo.dtype), 0.0, 1.0)
+
+
 # ----------------------------------------------------------------------------- shading
 
 AMBIENT = 0.4
@@ -200,7 +219,7 @@ TRIPOD_RADIUS_DEG = (11.0, 16.0)  # mean angular radius of the blob around the n
 TRIPOD_CLIP_DEG = (8.0, 19.5)
 
 
-def _value_noise(x: np.ndarray, y: np.ndarray, cell: float, seed: int) -> np.ndarray:
+def _value_noise(x: np.ndarray, y: np.ndarray, cell: float, seed: int | np.ndarray) -> np.ndarray:
     """Smooth value noise in [0,1): hashed lattice values, smoothstep-interpolated."""
     gx, gy = x / cell, y / cell
     i0, j0 = np.floor(gx), np.floor(gy)

@@ -89,13 +89,17 @@ def _colour(
     hits: Hits, dirs: np.ndarray, origin: np.ndarray, world: World, m: _Materials, fx: set[str], timings: dict
 ) -> np.ndarray:
     albedo = m.rgb.astype(dirs.dtype)[hits.sid]
-    need_points = "texture" in fx or "shading" in fx
+    need_points = bool({"texture", "shading", "detail"} & fx)
     if need_points:
         points = origin.astype(dirs.dtype)[None, :] + hits.t[:, None] * dirs
     if "texture" in fx:
         t0 = time.perf_counter()
         albedo = effects.texture(m.kind[hits.sid], _uv(hits, points, m), albedo)
         timings["texture"] = timings.get("texture", 0.0) + time.perf_counter() - t0
+    if "detail" in fx:
+        t0 = time.perf_counter()
+        albedo = effects.detail(hits.sid, _uv(hits, points, m), albedo)
+        timings["detail"] = timings.get("detail", 0.0) + time.perf_counter() - t0
     if "shading" in fx:
         t0 = time.perf_counter()
         nrm = normals(hits, dirs, world, m.boxes, origin)

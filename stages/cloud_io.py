@@ -57,11 +57,12 @@ def write_cloud(
             raise ValueError(f"{name}: contains NaN or Inf")
 
     np.savez(out_dir / NPZ_NAME, points=pts, colors=col, normals=nrm, u0=u0a, is_layout=lay)
-    _write_ply(out_dir / PLY_NAME, pts, col, nrm)
+    write_ply(out_dir / PLY_NAME, pts, col, nrm)
     return CloudFiles(npz=NPZ_NAME, ply=PLY_NAME, num_points=int(n), num_layout_points=int(lay.sum()))
 
 
-def _write_ply(path: Path, pts: np.ndarray, col: np.ndarray, nrm: np.ndarray) -> None:
+def write_ply(path: Path, pts: np.ndarray, col: np.ndarray, nrm: np.ndarray) -> None:
+    """A binary PLY of points, colours (RGB in [0, 1]) and normals, for viewers."""
     if len(pts) == 0:  # open3d refuses to write an empty cloud; a header-only PLY is valid
         props = "".join(f"property float {k}\n" for k in ("x", "y", "z", "nx", "ny", "nz"))
         props += "".join(f"property uchar {k}\n" for k in ("red", "green", "blue"))

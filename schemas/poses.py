@@ -1,0 +1,41 @@
+"""Artifact of the `poses` stage: camera-to-world poses recovered from the panoramas (SfM)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, Field
+
+Matrix4 = list[list[float]]
+
+
+class ViewPose(BaseModel):
+    view: str
+    registered: bool = Field(description="False when SfM could not place the view; it is then left out downstream.")
+    pose: Matrix4 | None = Field(default=None, description="Camera-to-world 4x4 in the world of DESIGN.md (metres).")
+    given: bool = Field(default=False, description="True when scene.json gave the pose (it is kept as given).")
+    reprojection_error_px: float | None = Field(
+        default=None, description="Mean reprojection error of the view's observations, pixels of the working panorama.")
+    observations: int = Field(default=0, description="Sparse points the view observes.")
+    residual_m: float | None = Field(
+        default=None, description="Given poses: distance between the fitted and the given camera centre (m).")
+    residual_deg: float | None = Field(
+        default=None, description="Given poses: angle between the fitted and the given orientation (degrees).")
+
+
+class PosesOutput(BaseModel):
+    method: Literal["rig", "equirect"] = Field(description="How panoramas were fed to COLMAP (docs/poses.md).")
+    working_height: int = Field(description="Panorama height (pixels) features were extracted at.")
+    views: list[ViewPose]
+    frame: Literal["floor", "known poses", "known pose and floor"] = Field(
+        description="What fixed the world frame: the floor and camera heights, or views with given poses.")
+    scale: float = Field(description="Metres per SfM unit.")
+    scale_uncertainty: float = Field(description="Relative standard uncertainty of the scale (0.01 = 1 %).")
+    floor_tilt_deg: float | None = Field(
+        default=None, description="Angle between the fitted floor's normal and gravity (the cameras' mean down axis).")
+    points: int = Field(description="Sparse points.")
+    mean_track_length: float = Field(description="Mean number of panoramas observing a sparse point.")
+    verified_pairs: int = Field(description="Pairs of panoramas with geometrically verified matches.")
+    sparse_points: str = Field(description="points.ply: the sparse points in the world frame (metres), coloured.")
+    drawing: str = Field(description="cameras.png: cameras over the sparse points, seen from above.")
+    timings_s: dict[str, float] = Field(default_factory=dict)

@@ -1,0 +1,198 @@
+"""From SfM's arbitrary frame to pano-pipe's world: upright, metric, placed.
+
+SfM recovers poses up to a similarity (rotation, translation, scale). Two ways
+fix it (docs/poses.md):
+
+- No view has a known pose: gravity is the cameras' mean down axis (360°
+  cameras are levelled, so each camera's +y is close to gravity and their
+  mean closer still); the scale makes the cameras' heights over the floor
+  plane, fitted to the sparse points below them, equal the known heights; the
+  first view sits at the origin looking along +z.
+- Some views have known poses: they fix the frame by a similarity fit
+  (rotation from their orientations, scale and translation from their
+  centres; with one known view the scale comes from the floor as above), and
+  the fit's residuals are reported.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: A floor plane's normal may lean this far from the cameras' mean down axis.
+MAX_FLOOR_TILT_DEG = 10.0
+RANSAC_TRIALS = 500
+
+
+@dataclass
+class Similarity:
+    """x -> scale * rotation @ x + translation (SfM frame to world)."""
+
+    scale: float
+    rotation: np.ndarray
+    translation: np.ndarray
+
+    def points(self, x: np.ndarray) -> np.ndarray:
+        return self.scale * np.asarray(x) @ self.rotation.T + self.translation
+
+    def pose(self, cam_to_world: np.ndarray) -> np.ndarray:
+        """A camera-to-world pose of the SfM frame as one of the world (scale leaves rotations alone)."""
+        out = np.eye(4)
+        out[:3, :3] = self.rotation @ cam_to_world[:3, :3]
+        out[:3, 3] = self.points(cam_to_world[:3, 3])
+        return out
+
+
+@dataclass
+class Floor:
+    """A plane n.x + d = 0 (n unit, pointing down, into the floor) in the upright SfM frame."""
+
+    normal: np.ndarray
+    offset: float
+    inliers: int
+    residual: float  # RMS distance of the inliers to the plane
+
+    def height_above(self, x: np.ndarray) -> np.ndarray:
+        return -(np.asarray(x) @ self.normal + self.offset)
+
+
+@dataclass
+class Alignment:
+    transform: Similarity
+    #: relative standard uncertainty of the scale (0.01 = 1 %)
+    scale_uncertainty: float
+    source: str  # "floor" or "known poses"
+    floor: Floor | None = None
+    floor_tilt_deg: float | None = None
+    #: known views only: distance (m) and angle (degrees) between the fitted and the given pose
+    residual_m: dict[str, float] = field(default_factory=dict)
+    residual_deg: dict[str, float] = field(default_factory=dict)
+
+
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking unit vector a to unit vector b."""
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    v, c = np.cross(a, b), float(a @ b)
+    if c < -1 + 1e-12:  # opposite: half a turn about any axis normal to a
+        axis = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+        axis /= np.linalg.norm(axis)
+        return 2.0 * np.outer(axis, axis) - np.eye(3)
+    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+
+
+def nearest_rotation(m: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(m)
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def rotation_angle_deg(r: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def upright_rotation(cam_to_world: list[np.ndarray]) -> np.ndarray:
+    """Rotation of the SfM frame that takes the cameras' mean down axis (their +y) to +y and turns
+    the first camera's forward axis towards +z about it."""
+    down = np.mean([p[:3, 1] for p in cam_to_world], axis=0)
+    level = rotation_between(down, np.array([0.0, 1.0, 0.0]))
+    forward = level @ cam_to_world[0][:3, 2]
+    yaw = np.arctan2(forward[0], forward[2])
+    c, s = np.cos(-yaw), np.sin(-yaw)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]) @ level
+
+
+def fit_floor(points: np.ndarray, centres: np.ndarray, seed: int = 0) -> Floor | None:
+    """The plane under the cameras holding the most points, its normal within MAX_FLOOR_TILT_DEG of
+    +y, in an upright frame; None when too few points lie below the cameras."""
+    below = points[points[:, 1] > centres[:, 1].max()]
+    if len(below) < 10:
+        return None
+    # inlier band: 1 % of the typical camera-to-point distance (the frame has no unit yet)
+    spread = float(np.median(np.linalg.norm(below - centres.mean(axis=0), axis=1)))
+    band = 0.01 * spread
+    rng = np.random.default_rng(seed)
+    best, best_count = None, 0
+    max_tilt = np.cos(np.radians(MAX_FLOOR_TILT_DEG))
+    for _ in range(RANSAC_TRIALS):
+        a, b, c = below[rng.choice(len(below), 3, replace=False)]
+        n = np.cross(b - a, c - a)
+        norm = np.linalg.norm(n)
+        if norm == 0:
+            continue
+        n = n / norm * np.sign(n[1] or 1.0)
+        if n[1] < max_tilt:
+            continue
+        count = int(np.sum(np.abs((below - a) @ n) < band))
+        if count > best_count:
+            best, best_count = (n, a), count
+    if best is None or best_count < 10:
+        return None
+    n, a = best
+    inliers = below[np.abs((below - a) @ n) < band]
+    # least-squares refinement: the normal is the direction of least spread of the inliers
+    centre = inliers.mean(axis=0)
+    n = np.linalg.svd(inliers - centre)[2][2]
+    n = n * np.sign(n[1])
+    residual = float(np.sqrt(np.mean(((inliers - centre) @ n) ** 2)))
+    return Floor(n, float(-centre @ n), len(inliers), residual)
+
+
+def metric_scale(heights_sfm: np.ndarray, heights_m: np.ndarray, floor: Floor) -> tuple[float, float]:
+    """Scale s minimising sum (s d_i - h_i)^2 over the cameras' SfM heights d_i and known heights
+    h_i, and its relative standard uncertainty: the spread of the per-camera ratios h_i / d_i
+    (over sqrt n) combined with the floor plane's own uncertainty over the mean height."""
+    d, h = np.asarray(heights_sfm, float), np.asarray(heights_m, float)
+    s = float(d @ h / (d @ d))
+    ratios = h / d
+    n = len(d)
+    spread = float(np.std(ratios, ddof=1) / np.sqrt(n)) / s if n > 1 else 0.0
+    plane = floor.residual / np.sqrt(floor.inliers) / float(np.mean(d))
+    return s, float(np.hypot(spread, plane))
+
+
+def align_to_floor(cam_to_world: dict[str, np.ndarray], points: np.ndarray, heights: dict[str, float],
+                   order: list[str]) -> Alignment:
+    """Upright and metric alignment without known poses; `order` puts the view that defines the
+    origin and the forward axis first. Raises ValueError when no floor is found."""
+    names = [v for v in order if v in cam_to_world]
+    up = upright_rotation([cam_to_world[v] for v in names])
+    centres = np.array([cam_to_world[v][:3, 3] for v in names]) @ up.T
+    floor = fit_floor(points @ up.T, centres)
+    if floor is None:
+        raise ValueError("no floor plane among the sparse points below the cameras, so no metric scale")
+    d = floor.height_above(centres)
+    if np.any(d <= 0):
+        raise ValueError("the fitted floor plane is not below every camera")
+    scale, uncertainty = metric_scale(d, np.array([heights[v] for v in names]), floor)
+    transform = Similarity(scale, up, -scale * centres[0])
+    tilt = rotation_angle_deg(rotation_between(floor.normal, np.array([0.0, 1.0, 0.0])))
+    return Alignment(transform, uncertainty, "floor", floor=floor, floor_tilt_deg=tilt)
+
+
+def align_to_known(cam_to_world: dict[str, np.ndarray], known: dict[str, np.ndarray], points: np.ndarray,
+                   heights: dict[str, float], order: list[str]) -> Alignment:
+    """Similarity fit to the views with known camera-to-world poses (at least one registered)."""
+    names = [v for v in order if v in known and v in cam_to_world]
+    # rotation: the chordal mean of world_from_sfm over the known views
+    rotation = nearest_rotation(sum(known[v][:3, :3] @ cam_to_world[v][:3, :3].T for v in names))
+    src = np.array([cam_to_world[v][:3, 3] for v in names]) @ rotation.T
+    dst = np.array([known[v][:3, 3] for v in names])
+    src_c, dst_c = src - src.mean(axis=0), dst - dst.mean(axis=0)
+    uncertainty, floor, source = 0.0, None, "known poses"
+    if len(names) >= 2 and np.linalg.norm(src_c) > 0 and np.linalg.norm(dst_c) > 0:
+        scale = float(np.sum(src_c * dst_c) / np.sum(src_c * src_c))
+        residual = dst_c - scale * src_c
+        uncertainty = float(np.sqrt(np.sum(residual ** 2) / max(len(names) - 1, 1)) / np.linalg.norm(dst_c))
+    else:  # one known view: its pose fixes rotation and position, the floor the scale
+        floor_fit = align_to_floor(cam_to_world, points, heights, order)
+        scale, uncertainty, floor = floor_fit.transform.scale, floor_fit.scale_uncertainty, floor_fit.floor
+        source = "known pose and floor"
+    transform = Similarity(scale, rotation, dst.mean(axis=0) - scale * src.mean(axis=0))
+    res_m, res_deg = {}, {}
+    for v in names:
+        fitted = transform.pose(cam_to_world[v])
+        res_m[v] = float(np.linalg.norm(fitted[:3, 3] - known[v][:3, 3]))
+        res_deg[v] = rotation_angle_deg(fitted[:3, :3].T @ known[v][:3, :3])
+    return Alignment(transform, uncertainty, source, floor=floor, residual_m=res_m, residual_deg=res_deg)
