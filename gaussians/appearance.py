@@ -20,14 +20,14 @@ class Appearance:
     """out = gain[view] * rgb + bias[view], per channel; `names` are the panoramas (cube faces
     share their panorama's transform: a face "pano/px" uses "pano")."""
 
-    def __init__(self, names: list[str], lr: float = 1e-3, dtype: torch.dtype = torch.float32):
+    def __init__(self, names: list[str], lr: float = 1e-3, dtype: torch.dtype = torch.float32, device="cpu"):
         if len(set(names)) != len(names) or not names:
             raise ValueError("appearance needs distinct panorama names")
         self.names = list(names)
         self.index = {n: i for i, n in enumerate(self.names)}
         self.lr = float(lr)
-        self.gain = torch.ones(len(names), 3, dtype=dtype, requires_grad=True)
-        self.bias = torch.zeros(len(names), 3, dtype=dtype, requires_grad=True)
+        self.gain = torch.ones(len(names), 3, dtype=dtype, device=device, requires_grad=True)
+        self.bias = torch.zeros(len(names), 3, dtype=dtype, device=device, requires_grad=True)
         self.opt = torch.optim.Adam([self.gain, self.bias], lr=self.lr)
 
     @staticmethod
@@ -71,8 +71,9 @@ class Appearance:
             if not (isinstance(t, torch.Tensor) and t.shape == self.gain.shape and t.dtype == self.gain.dtype
                     and bool(torch.isfinite(t).all())):
                 raise ValueError(f"checkpoint appearance {k} must be finite {self.gain.dtype} [{len(self.names)}, 3]")
-        gain = state["gain"].clone().requires_grad_(True)
-        bias = state["bias"].clone().requires_grad_(True)
+        # checkpoints hold CPU tensors: back onto this model's device
+        gain = state["gain"].to(self.gain.device, copy=True).requires_grad_(True)
+        bias = state["bias"].to(self.gain.device, copy=True).requires_grad_(True)
         opt = torch.optim.Adam([gain, bias], lr=self.lr)
         try:
             opt.load_state_dict(state["opt"])

@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import math
-
 import torch
 import torch.nn.functional as F
 
-__all__ = ["l1_loss", "ssim", "psnr", "layout_loss", "photometric_loss", "LAYOUT_EPS"]
+__all__ = ["l1_loss", "ssim", "psnr", "psnr_tensor", "layout_loss", "photometric_loss", "LAYOUT_EPS"]
 
 #: Displacement (metres) below which L_layout fades to 0: it regularises the
 #: 0/0 at μ = u0 (value 0, zero and finite gradient there) and changes the
@@ -71,9 +69,19 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 
 
 def psnr(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> float:
     """PSNR in dB of images in [0,1] (pred clamped to [0,1]), over `mask`'s valid pixels if given."""
+    return float(psnr_tensor(pred, gt, mask))
+
+
+def psnr_tensor(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """:func:`psnr` as a 0-dim tensor on the images' device, computed without a host sync
+    (the training loop reads it only when it logs). An all-false mask means every pixel."""
     err = (pred.detach().clamp(0, 1) - gt) ** 2
-    mse = float(err.mean() if mask is None or not bool(mask.any()) else err[mask].mean())
-    return 10.0 * math.log10(1.0 / max(mse, 1e-12))
+    mse = err.mean()
+    if mask is not None:
+        m = mask.to(err.dtype)[..., None]
+        n = m.sum() * err.shape[-1]
+        mse = torch.where(n > 0, (err * m).sum() / n.clamp_min(1), mse)
+    return 10.0 * torch.log10(1.0 / mse.clamp_min(1e-12))
 
 
 def layout_loss(means: torch.Tensor, u0: torch.Tensor, normals: torch.Tensor, mask: torch.Tensor | None = None,

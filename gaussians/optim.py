@@ -90,6 +90,13 @@ class Adam:
             self.exp_avg[name].zero_()
             self.exp_avg_sq[name].zero_()
 
+    def to(self, device) -> Adam:
+        """Move the moments to `device` (a checkpoint's are on the CPU); returns self."""
+        for d in (self.exp_avg, self.exp_avg_sq):
+            for k in d:
+                d[k] = d[k].to(device)
+        return self
+
     # -- checkpoints --------------------------------------------------------
     def state_dict(self) -> dict:
         return {

@@ -33,7 +33,7 @@ import torch
 
 from gaussians.appearance import Appearance
 from gaussians.densify import DensifyStats, densify_and_prune, gradient_scale, reset_opacity
-from gaussians.losses import layout_loss, photometric_loss, psnr
+from gaussians.losses import layout_loss, photometric_loss, psnr, psnr_tensor
 from gaussians.model import PARAM_NAMES, Gaussians, render
 from gaussians.optim import Adam, expon_lr
 
@@ -78,6 +78,9 @@ class TrainConfig:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     seed: int = 0
     backend: str | None = None
+    #: torch device of the model, images, optimiser and losses; not in the fingerprint, so a
+    #: checkpoint resumes on another device (checkpoints hold CPU tensors)
+    device: str = "cpu"
     log_every: int = 10
     checkpoint_every: int = 500
     # per-panorama appearance (gaussians/appearance.py)
@@ -90,7 +93,7 @@ class TrainConfig:
         import hashlib
 
         d = asdict(self)
-        for k in ("log_every", "checkpoint_every"):
+        for k in ("log_every", "checkpoint_every", "device"):
             d.pop(k)
         return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
@@ -105,6 +108,10 @@ class TrainView:
     camera: object
     #: [H,W] bool, the pixels the losses use (a tripod or hand masked out); None = every pixel
     mask: torch.Tensor | None = None
+
+    def to(self, device) -> TrainView:
+        return TrainView(self.name, self.image.to(device), self.viewmat.to(device), self.camera,
+                         None if self.mask is None else self.mask.to(device))
 
 
 def scene_extent(points: np.ndarray | torch.Tensor, low: float = 1.0, high: float = 99.0) -> float:
@@ -133,15 +140,16 @@ class Trainer:
         if not views:
             raise ValueError("no training views")
         self.cfg = cfg
-        self.views = views
-        self.g = g.detach()
+        self.device = torch.device(cfg.device)
+        self.views = [v.to(self.device) for v in views]
+        self.g = g.detach().to(device=self.device)
         self.g.requires_grad_(True)
         lr_means = cfg.lr_position_init * cfg.extent
         self.opt = Adam({
             "means": lr_means, "quats": cfg.lr_rotation, "log_scales": cfg.lr_scaling,
             "opacity_logits": cfg.lr_opacity, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_rest,
         })
-        self.stats = DensifyStats.zeros(len(self.g), dtype=self.g.means.dtype)
+        self.stats = DensifyStats.zeros(len(self.g), dtype=self.g.means.dtype, device=self.device)
         self.gen = torch.Generator().manual_seed(int(cfg.seed))
         self.iteration = 0
         self.active_sh = 0
@@ -151,7 +159,8 @@ class Trainer:
         self.train_seconds = 0.0
         self.nonfinite_steps = 0
         self.log_path = log_path
-        self._bg = torch.tensor(cfg.background, dtype=self.g.means.dtype)
+        self._bg = torch.tensor(cfg.background, dtype=self.g.means.dtype, device=self.device)
+        self._has_layout: bool | None = None  # cached: asking the device every iteration would sync
         self.last_loss: float | None = None
         #: Per-panorama colour transforms (None: off); applied to training renders only.
         self.appearance = self._new_appearance()
@@ -163,7 +172,7 @@ class Trainer:
         if not self.cfg.appearance:
             return None
         names = list(dict.fromkeys(Appearance.panorama_of(v.name) for v in self.views))
-        return Appearance(names, self.cfg.lr_appearance, self.g.means.dtype)
+        return Appearance(names, self.cfg.lr_appearance, self.g.means.dtype, device=self.device)
 
     def _as_trained(self, view: TrainView, image: torch.Tensor) -> torch.Tensor:
         """A render as the loss sees it: through the view's appearance transform, when on."""
@@ -194,7 +203,9 @@ class Trainer:
         if self.appearance is not None and cfg.lambda_appearance > 0:
             loss = loss + cfg.lambda_appearance * self.appearance.regulariser()
         lay = None
-        if cfg.layout_reg and cfg.lambda_layout > 0 and bool(g.is_layout.any()):
+        if self._has_layout is None:
+            self._has_layout = bool(g.is_layout.any())
+        if cfg.layout_reg and cfg.lambda_layout > 0 and self._has_layout:
             lay = layout_loss(g.means, g.u0, g.normals, g.is_layout)
             loss = loss + cfg.lambda_layout * lay
         if out.means2d.requires_grad:
@@ -202,20 +213,21 @@ class Trainer:
         loss.backward()
 
         with torch.no_grad():
-            bad = False
+            # on the device, without a host sync: counted here, read by the log
+            finite = torch.ones((), dtype=torch.bool, device=self.device)
             for k in PARAM_NAMES:
                 p = getattr(g, k)
-                if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
-                    bad = True
+                if p.grad is not None:
+                    finite &= torch.isfinite(p.grad).all()
                     torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
-            self.nonfinite_steps += int(bad)
+            self.nonfinite_steps = self.nonfinite_steps + (~finite).long()
             self.opt.step(g)
             if self.appearance is not None:
                 self.appearance.step()
             Adam.zero_grad(g)
             # quaternions: keep them away from zero (the renderer copes, Adam's steps would not)
             qn = torch.linalg.vector_norm(g.quats, dim=-1, keepdim=True)
-            g.quats.copy_(torch.where(qn > 1e-8, g.quats, torch.tensor([1.0, 0, 0, 0], dtype=g.quats.dtype)))
+            g.quats.copy_(torch.where(qn > 1e-8, g.quats, g.quats.new_tensor([1.0, 0, 0, 0])))
 
             if it < cfg.densify_until:
                 self.stats.add(out.means2d.grad if out.means2d.requires_grad else None, out.visible, out.radii,
@@ -232,18 +244,21 @@ class Trainer:
                         max_gaussians=cfg.max_gaussians, generator=self.gen,
                     )
                     self.g = res.gaussians
-                    self.stats = DensifyStats.zeros(len(self.g), dtype=self.g.means.dtype)
+                    self._has_layout = None
+                    self.stats = DensifyStats.zeros(len(self.g), dtype=self.g.means.dtype, device=self.device)
                 if cfg.opacity_reset_every > 0 and it % cfg.opacity_reset_every == 0:
                     reset_opacity(self.g, self.opt)
 
-        lv = float(loss.detach())
-        p = psnr(pred, view.image, view.mask)
+        # 0-dim tensors, not floats: reading them would wait for the device every iteration;
+        # the log (every log_every iterations) converts them
+        lv = loss.detach()
+        p = psnr_tensor(pred, view.image, view.mask)
         self.ema.update(lv, p)
         self.last_loss = lv
         self._in_step = False
         return {
-            "iteration": it, "loss": lv, "l1": float(l1.detach()), "ssim": float(s.detach()),
-            "layout": None if lay is None else float(lay.detach()), "psnr": p, "view": view.name,
+            "iteration": it, "loss": lv, "l1": l1.detach(), "ssim": s.detach(),
+            "layout": None if lay is None else lay.detach(), "psnr": p, "view": view.name,
         }
 
     # -- the loop --------------------------------------------------------------
@@ -280,11 +295,13 @@ class Trainer:
         return not self._in_step
 
     def _log(self, info: dict) -> None:
+        """One record of plain numbers (the host syncs with the device here, every log_every steps)."""
         rec = {
-            "iteration": info["iteration"], "loss": info["loss"], "l1": info["l1"], "ssim": info["ssim"],
-            "layout": info["layout"], "psnr": info["psnr"], "ema_loss": self.ema.loss, "ema_psnr": self.ema.psnr,
+            "iteration": info["iteration"], "loss": _num(info["loss"]), "l1": _num(info["l1"]),
+            "ssim": _num(info["ssim"]), "layout": _num(info["layout"]), "psnr": _num(info["psnr"]),
+            "ema_loss": _num(self.ema.loss), "ema_psnr": _num(self.ema.psnr),
             "num_gaussians": len(self.g), "sh_degree": self.active_sh, "lr_means": self.opt.lrs["means"],
-            "seconds": round(self.train_seconds, 3), "nonfinite_steps": self.nonfinite_steps,
+            "seconds": round(self.train_seconds, 3), "nonfinite_steps": int(self.nonfinite_steps),
         }
         self.records.append(rec)
         if self.log_path is not None:
@@ -307,8 +324,9 @@ class Trainer:
 
     # -- checkpoints ------------------------------------------------------------
     def state_dict(self) -> dict:
-        """Tensors and plain data only (what torch.load(weights_only=True) accepts)."""
-        return {
+        """Tensors and plain data only (what torch.load(weights_only=True) accepts); every tensor
+        on the CPU, so a checkpoint written on one device resumes on another."""
+        return _to_cpu({
             "version": CHECKPOINT_VERSION,
             "fingerprint": self.cfg.fingerprint() + self.extra_fingerprint,
             "iteration": self.iteration,
@@ -320,12 +338,12 @@ class Trainer:
             "np_rng": _np_rng_to_plain(np.random.get_state()),
             "active_sh": self.active_sh,
             "stack": list(self.stack),
-            "ema": asdict(self.ema),
+            "ema": {k: _num(v) for k, v in asdict(self.ema).items()},
             "appearance": None if self.appearance is None else self.appearance.state_dict(),
             "records": list(self.records),
             "train_seconds": self.train_seconds,
-            "nonfinite_steps": self.nonfinite_steps,
-        }
+            "nonfinite_steps": int(self.nonfinite_steps),
+        })
 
     def save_checkpoint(self, path: Path) -> None:
         """Write atomically (temporary file, then rename). On failure the temporary file is
@@ -351,10 +369,11 @@ class Trainer:
         new = self._checked_state(s)
         # everything below is validated; none of it can fail half-way
         self.iteration = new["iteration"]
-        self.g = new["g"]
+        self.g = new["g"].to(device=self.device)
         self.g.requires_grad_(True)
-        self.opt = new["opt"]
-        self.stats = new["stats"]
+        self._has_layout = None
+        self.opt = new["opt"].to(self.device)
+        self.stats = new["stats"].to(self.device)
         self.gen.set_state(new["gen"])
         torch.set_rng_state(new["torch_rng"])
         np.random.set_state(new["np_rng"])
@@ -478,6 +497,22 @@ class Trainer:
             with open(self.log_path, "w") as f:
                 for rec in self.records:
                     f.write(json.dumps(rec) + "\n")
+
+
+def _num(x):
+    """A logged value as a plain number (None stays None); reading a device tensor waits for it."""
+    return None if x is None else float(x)
+
+
+def _to_cpu(x):
+    """`x` with every tensor in it (nested dicts, lists, tuples) moved to the CPU."""
+    if isinstance(x, torch.Tensor):
+        return x.detach().cpu()
+    if isinstance(x, dict):
+        return {k: _to_cpu(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return type(x)(_to_cpu(v) for v in x)
+    return x
 
 
 _STATE_KEYS = frozenset({

@@ -109,7 +109,10 @@ class Params(BaseModel):
     layout_flatten: float = Field(default=0.1, gt=0, le=1, description="Thickness / width of layout Gaussians.")
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     seed: int = Field(default=0, ge=0, le=2**32 - 1)
-    backend: Literal["cpp", "torch"] | None = Field(default=None, description="splatting backend; None = its default.")
+    backend: Literal["cpp", "cuda", "torch"] | None = Field(
+        default=None, description="splatting backend; None = its default for the device (cpp on CPU, cuda on CUDA).")
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        default="auto", description="Where training runs: auto = CUDA when available, else the CPU.")
     threads: int | None = Field(default=None, ge=1, description="torch threads (None = leave as is).")
     log_every: int = Field(default=10, ge=1)
     checkpoint_every: int = Field(default=500, ge=0, description="0 = only on Ctrl-C.")
@@ -242,7 +245,7 @@ def build_views(images: dict[str, np.ndarray], viewmats: dict[str, np.ndarray], 
     return out
 
 
-def make_config(p: Params, num_train_views: int, extent: float) -> TrainConfig:
+def make_config(p: Params, num_train_views: int, extent: float, device: str = "cpu") -> TrainConfig:
     iterations = int(p.resolved("iterations"))
     reset = p.resolved("opacity_reset_every")
     return TrainConfig(
@@ -259,7 +262,7 @@ def make_config(p: Params, num_train_views: int, extent: float) -> TrainConfig:
         percent_dense=p.percent_dense, min_opacity=p.min_opacity, opacity_reset_every=int(reset),
         max_world_scale=p.max_world_scale, max_screen_radius=p.max_screen_radius,
         max_gaussians=p.resolved("max_gaussians"),
-        background=tuple(float(x) for x in p.background), seed=p.seed, backend=p.backend,
+        background=tuple(float(x) for x in p.background), seed=p.seed, backend=p.backend, device=device,
         log_every=p.log_every, checkpoint_every=p.checkpoint_every,
         appearance=p.appearance, lambda_appearance=p.lambda_appearance, lr_appearance=p.lr_appearance,
     )
@@ -399,7 +402,8 @@ def run(ctx: StageContext) -> TrainOutput:
     train_views = build_views(images, {v.name: v.viewmat for v in views}, p.projection, masks, rig)
     g, init = initial_gaussians(ctx, p, views)
     extent = p.extent if p.extent is not None else scene_extent(g.means)
-    cfg = make_config(p, len(views), extent)
+    device = resolve_device(p.device, "train.device")
+    cfg = make_config(p, len(views), extent, device)
 
     log_path = ctx.out_dir / "train_log.jsonl"
     trainer = Trainer(g, train_views, cfg, log_path=log_path)
@@ -431,14 +435,18 @@ def run(ctx: StageContext) -> TrainOutput:
     t0 = time.perf_counter()
     start_it = trainer.iteration
     with _DeferredInterrupt() as stop, progress:
-        task = progress.add_task(f"train ({init}, {p.projection})", total=cfg.iterations, completed=start_it,
+        task = progress.add_task(f"train ({init}, {p.projection}, {device})", total=cfg.iterations, completed=start_it,
                                  loss="-", psnr="-", count=len(trainer.g), rate="-")
 
         def on_step(tr: Trainer, info: dict) -> None:
-            done = tr.iteration - start_it
-            rate = done / max(time.perf_counter() - t0, 1e-9)
-            progress.update(task, completed=tr.iteration, loss=f"{tr.ema.loss:.4f}", psnr=f"{tr.ema.psnr:.2f}",
-                            count=len(tr.g), rate=f"{rate:.1f}")
+            if tr.iteration % p.log_every and tr.iteration != cfg.iterations:
+                # the loss and PSNR live on the device: reading them every iteration would sync
+                progress.update(task, completed=tr.iteration)
+            else:
+                done = tr.iteration - start_it
+                rate = done / max(time.perf_counter() - t0, 1e-9)
+                progress.update(task, completed=tr.iteration, loss=f"{float(tr.ema.loss):.4f}",
+                                psnr=f"{float(tr.ema.psnr):.2f}", count=len(tr.g), rate=f"{rate:.1f}")
             if stop.requested:
                 console.print(f"interrupted: checkpoint at iteration {tr.iteration} -> {escape(str(ckpt))}; "
                               "rerun with --resume to continue")
@@ -462,8 +470,9 @@ def run(ctx: StageContext) -> TrainOutput:
     final_psnr = trainer.mean_psnr()
     if ckpt is not None and ckpt.is_file():
         ckpt.unlink()  # finished: the artifact supersedes the checkpoint
-    if trainer.nonfinite_steps:
-        ctx.warn(f"{trainer.nonfinite_steps} iterations had non-finite gradients (zeroed)")
+    nonfinite = int(trainer.nonfinite_steps)
+    if nonfinite:
+        ctx.warn(f"{nonfinite} iterations had non-finite gradients (zeroed)")
     return TrainOutput(
         ply="point_cloud.ply",
         log="train_log.jsonl",
@@ -477,7 +486,8 @@ def run(ctx: StageContext) -> TrainOutput:
         crops=None if rig is None else CropRig.of(rig),
         train_images=len(train_views),
         layout_reg=p.layout_reg,
-        backend=_backend_name(p.backend),
+        backend=_backend_name(p.backend, device),
+        device=device,
         final_train_psnr=final_psnr,
         preset=p.preset,
         lambda_layout=cfg.lambda_layout if p.layout_reg else 0.0,
@@ -487,9 +497,23 @@ def run(ctx: StageContext) -> TrainOutput:
     )
 
 
-def _backend_name(requested: str | None) -> str:
+def resolve_device(requested: str, field: str) -> str:
+    """`auto|cpu|cuda` to a torch device name; CUDA asked for on a machine without it is bad input
+    (exit 2), not a silent CPU run of a GPU-sized preset."""
+    if requested == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if requested == "cuda" and not torch.cuda.is_available():
+        raise PanoError(field, "cuda asked for, but torch sees no CUDA device here (use auto or cpu)")
+    return requested
+
+
+def _backend_name(requested: str | None, device: str = "cpu") -> str:
     if requested:
         return requested
+    if device == "cuda":
+        from splatting import raster_triton
+
+        return "cuda" if raster_triton.unavailable_reason(torch.device("cuda")) is None else "torch"
     try:
         from splatting import raster_cpp
 
