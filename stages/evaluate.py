@@ -196,7 +196,9 @@ def run(ctx: StageContext) -> EvaluateOutput:
         ctx.warn("the scene has no test views: evaluating on the TRAINING views (a fit, not generalisation)")
 
     background = p.background if p.background is not None else train_background(train.dir)
-    device = "cuda" if p.device == "cuda" or (p.device == "auto" and torch.cuda.is_available()) else "cpu"
+    from stages.train import resolve_device
+
+    device = resolve_device(p.device, "evaluate.device")  # cuda without CUDA: a one-line input error
     old_threads = torch.get_num_threads()
     if p.threads:
         torch.set_num_threads(p.threads)
@@ -261,6 +263,14 @@ def run(ctx: StageContext) -> EvaluateOutput:
         cam = equirect_camera(*size)
         times = []
         for _ in range(p.fps_repeats):
+            if device == "cuda":  # device time of the render (and its download), not host-side launch time
+                start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+                start.record()
+                render_pose(g, pose, cam, backend=p.backend, background=background, rig=stitch_rig(tdata, size))
+                end.record()
+                end.synchronize()
+                times.append(start.elapsed_time(end) / 1000.0)
+                continue
             t0 = time.perf_counter()
             render_pose(g, pose, cam, backend=p.backend, background=background, rig=stitch_rig(tdata, size))
             times.append(time.perf_counter() - t0)
