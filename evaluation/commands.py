@@ -61,20 +61,36 @@ def report_command(scene: SceneArg, out: OutOpt = None, config: ConfigOpt = None
 
 def ablate_command(
     scene: SceneArg,
-    seeds: Annotated[int, typer.Option("--seeds", min=1, help="Seeds per variant (mean ± std).")] = 1,
+    seeds: Annotated[
+        Optional[int], typer.Option("--seeds", min=1, help="Seeds per variant (mean ± std); default 1, 3 with --paper.")
+    ] = None,
     out: OutOpt = None,
     iterations: Annotated[
         Optional[int], typer.Option("--iterations", min=1, help="Training iterations per variant (default: the train stage's).")
     ] = None,
+    paper: Annotated[
+        bool, typer.Option("--paper", help="The paper's setting: train preset 'paper' (512x1024, 7k iterations), "
+                                           "evaluation at 512x1024, 3 seeds; --set/--config still override.")
+    ] = False,
+    baseline: Annotated[
+        str, typer.Option("--baseline", help="Projection of the 3D-GS* steps: crops (the paper's eight 120° crops) "
+                                             "or cubemap.")
+    ] = "crops",
     config: ConfigOpt = None,
     set_: SetOpt = None,
 ) -> None:
-    """The paper's ablation: 3D-GS* (random init, cubemap) / + layout init / + 360° splatting / + layout regularisation."""
-    from evaluation.experiments import run_ablation
+    """The paper's ablation: 3D-GS* (random init, perspective crops) / + layout init / + 360° splatting / + layout regularisation."""
+    import shlex
+    import sys
+
+    from evaluation.experiments import PAPER_SEEDS, paper_config, run_ablation
 
     engine = _engine(scene, out, config, set_)
-    res = run_ablation(engine.scene, engine.out_dir, engine.config, seeds=seeds, iterations=iterations,
-                       log=console.print)
+    cfg = paper_config(engine.config) if paper else engine.config
+    seeds = seeds if seeds is not None else PAPER_SEEDS if paper else 1
+    command = "pano-pipe " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:2] == ["ablate"] else None
+    res = run_ablation(engine.scene, engine.out_dir, cfg, seeds=seeds, iterations=iterations,
+                       log=console.print, baseline=baseline, command=command)
     console.print(res["table"])
     for n in res["notes"]:
         console.print(n)

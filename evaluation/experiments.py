@@ -8,10 +8,12 @@ folder; their cache keys do not depend on the train parameters, so the
 variant's engine finds them up to date and runs only train and evaluate.
 
 ablate: the paper's grid (Bai et al., Table 4), each with N seeds:
-  1. 3D-GS*          random init, cubemap projection, no layout regularisation
+  1. 3D-GS*          random init, perspective crops (the paper's eight 120° crops; or the
+                     cubemap), no layout regularisation
   2. + layout init   layout(+depth) point cloud init
-  3. + 360 splatting direct equirectangular rendering instead of a cubemap
+  3. + 360 splatting direct equirectangular rendering instead of the crops
   4. + layout reg    the layout regulariser
+`--paper` runs it at the paper's setting (the `paper` preset: 512×1024, 7k iterations; 3 seeds).
 sweep: iterations × training resolution × Gaussian cap → PSNR against
 training seconds and against render FPS, with the Pareto front.
 """
@@ -34,13 +36,23 @@ from pipeline.paths import RUN_MARKER
 # Paper's ablation on one Matterport3D scene, 4 views (DESIGN.md), for context in the table.
 PAPER_PSNR = {"3D-GS*": 13.64, "+ layout init": 15.98, "+ 360 splatting": 16.66, "+ layout reg": 17.72}
 
-#: Semantic settings of each ablation step; mapped onto the train stage's parameter names below.
-VARIANTS: list[tuple[str, str, dict]] = [
-    ("3dgs", "3D-GS*", {"init": "random", "projection": "cubemap", "layout_reg": False}),
-    ("layout-init", "+ layout init", {"init": "layout", "projection": "cubemap", "layout_reg": False}),
-    ("360", "+ 360 splatting", {"init": "layout", "projection": "360", "layout_reg": False}),
-    ("layout-reg", "+ layout reg", {"init": "layout", "projection": "360", "layout_reg": True}),
-]
+
+def ablation_variants(baseline: str = "crops") -> list[tuple[str, str, dict]]:
+    """Semantic settings of each ablation step (mapped onto the train stage's parameter names below);
+    `baseline` is the projection of the 3D-GS* steps: 'crops' (the paper's) or 'cubemap'."""
+    if baseline not in ("crops", "cubemap"):
+        raise PanoError("--baseline", f"must be 'crops' or 'cubemap', got {baseline!r}")
+    return [
+        ("3dgs", "3D-GS*", {"init": "random", "projection": baseline, "layout_reg": False}),
+        ("layout-init", "+ layout init", {"init": "layout", "projection": baseline, "layout_reg": False}),
+        ("360", "+ 360 splatting", {"init": "layout", "projection": "360", "layout_reg": False}),
+        ("layout-reg", "+ layout reg", {"init": "layout", "projection": "360", "layout_reg": True}),
+    ]
+
+
+VARIANTS = ablation_variants()
+#: The paper's ablation setting (`ablate --paper`): its preset (512×1024, 7k iterations) and seeds.
+PAPER_SEEDS = 3
 
 # Train-stage parameter names each semantic setting may go by (the first the stage has wins).
 _PARAM_ALIASES = {
@@ -166,15 +178,21 @@ def summarise_run(run_dir: Path, results=None) -> dict:
     return {
         "dir": str(run_dir),
         "psnr": mean.get("psnr"),
+        "psnr_colorfit": mean.get("psnr_colorfit"),
         "ssim": mean.get("ssim"),
         "ws_psnr": mean.get("ws_psnr"),
         "lpips": mean.get("lpips"),
         "depth_abs_rel": mean.get("depth_abs_rel"),
         "train_seconds": tr["data"].get("train_seconds"),
         "num_gaussians": tr["data"].get("num_gaussians"),
+        "iterations": tr["data"].get("iterations"),
+        "train_images": tr["data"].get("train_images"),
         "fps": ev["data"].get("fps"),
         "split": ev["data"].get("split"),
-        "train": {k: tr["data"].get(k) for k in ("init", "projection", "layout_reg", "iterations", "resolution")},
+        "eval_resolution": ev["data"].get("resolution"),
+        "stitched": ev["data"].get("stitched"),
+        "train": {k: tr["data"].get(k) for k in ("init", "projection", "layout_reg", "iterations", "resolution",
+                                                  "preset", "appearance")},
         "cached": ran.get("train") == "cached",
     }
 
@@ -200,34 +218,57 @@ class AblationRow:
         return mean_std([r.get(metric) for r in self.runs])
 
 
+def step_gain(prev: AblationRow, cur: AblationRow, metric: str = "psnr") -> tuple[float, float]:
+    """(mean gain of `cur` over `prev`, its spread): the spread is the standard deviation of the
+    difference of two independent runs, √(s_prev² + s_cur²) from the seeds' standard deviations."""
+    (a, sa), (b, sb) = prev.stat(metric), cur.stat(metric)
+    return b - a, math.hypot(sa, sb)
+
+
 def ordering_notes(rows: list[AblationRow]) -> list[str]:
-    """One line per step: does it beat the previous step on mean PSNR (the paper's claim)?"""
+    """One line per step: does it beat the previous step on mean PSNR (the paper's claim), and by
+    more than its spread?"""
     notes = []
     for prev, cur in zip(rows, rows[1:]):
-        (a, sa), (b, sb) = prev.stat("psnr"), cur.stat("psnr")
-        d = b - a
+        d, spread = step_gain(prev, cur)
+        n = min(len(prev.runs), len(cur.runs))
         if math.isnan(d):
             notes.append(f"{cur.label}: no PSNR to compare")
         elif d > 0:
-            noise = max(sa, sb)
-            extra = f" (within one seed std {noise:.2f} dB)" if noise > 0 and d < noise else ""
+            extra = ("" if n < 2 else f", more than its spread {spread:.2f} dB" if d > spread else
+                     f", within its spread {spread:.2f} dB over {n} seeds: not a clear gain")
             notes.append(f"✓ {cur.label} improves on {prev.label} by {d:+.2f} dB{extra}")
         else:
-            notes.append(f"✗ {cur.label} does NOT improve on {prev.label}: {d:+.2f} dB")
+            notes.append(f"✗ {cur.label} does NOT improve on {prev.label}: {d:+.2f} dB"
+                         + (f" (spread {spread:.2f} dB)" if n >= 2 else ""))
     return notes
 
 
+TABLE_METRICS = (("psnr", 2), ("ssim", 3), ("ws_psnr", 2), ("lpips", 3), ("psnr_colorfit", 2))
+TABLE_COSTS = (("iterations", 0), ("train_images", 0), ("train_seconds", 0), ("num_gaussians", 0))
+
+
 def ablation_table(rows: list[AblationRow]) -> str:
+    """Mean ± std over the seeds; the step's PSNR gain over the row above and whether it exceeds its
+    spread; what each variant cost (iterations = optimiser steps, one training image each; the
+    training images: panoramas, or their crops; training seconds; final Gaussians)."""
     lines = [
-        "| variant | PSNR (dB) | SSIM | WS-PSNR (dB) | LPIPS | train s | Gaussians | paper PSNR |",
-        "|---|---|---|---|---|---|---|---|",
+        "| variant | PSNR (dB) | SSIM | WS-PSNR (dB) | LPIPS | PSNR colour-fit (dB) | gain (dB) | > spread | "
+        "iterations | train images | train s | Gaussians | paper PSNR |",
+        "|" + "---|" * 13,
     ]
-    for r in rows:
+    for i, r in enumerate(rows):
         cells = []
-        for m, d in (("psnr", 2), ("ssim", 3), ("ws_psnr", 2), ("lpips", 3), ("train_seconds", 0),
-                     ("num_gaussians", 0)):
+        for m, d in TABLE_METRICS:
             mu, sd = r.stat(m)
             cells.append("—" if math.isnan(mu) else f"{mu:.{d}f} ± {sd:.{d}f}")
+        gain, spread = step_gain(rows[i - 1], r) if i else (math.nan, math.nan)
+        cells.append("—" if math.isnan(gain) else f"{gain:+.2f} (± {spread:.2f})")
+        cells.append("—" if math.isnan(gain) or min(len(r.runs), len(rows[i - 1].runs)) < 2
+                     else ("yes" if gain > spread else "no"))
+        for m, d in TABLE_COSTS:
+            mu, sd = r.stat(m)
+            cells.append("—" if math.isnan(mu) else f"{mu:.{d}f}" if sd == 0 else f"{mu:.{d}f} ± {sd:.{d}f}")
         lines.append(f"| {r.label} | " + " | ".join(cells) + f" | {PAPER_PSNR.get(r.label, '—')} |")
     return "\n".join(lines)
 
@@ -260,15 +301,27 @@ def plot_ablation(rows: list[AblationRow], path: Path) -> None:
     plt.close(fig)
 
 
+def paper_config(base_config: dict) -> dict:
+    """The paper's setting under `base_config`: the train stage's `paper` preset (512×1024
+    training, 7k iterations, its densification budget) and evaluation at the training size;
+    settings given explicitly (--config/--set) still win."""
+    cfg = {k: dict(v) for k, v in base_config.items()}
+    cfg.setdefault("train", {}).setdefault("preset", "paper")
+    cfg.setdefault("evaluate", {}).setdefault("resolution", "train")
+    return cfg
+
+
 def run_ablation(scene, base_dir: Path, base_config: dict, seeds: int = 1, iterations: int | None = None,
-                 variants=None, out_dir: Path | None = None, log=print) -> dict:
-    """Run the ablation grid; writes ablation.{md,json,png} into out_dir (default <run>/ablate/)."""
+                 variants=None, out_dir: Path | None = None, log=print, baseline: str = "crops",
+                 command: str | None = None) -> dict:
+    """Run the ablation grid; writes ablation.{md,json,png} into out_dir (default <run>/ablate/).
+    `command` (the command line) is written into ablation.md."""
     from pipeline.engine import Engine
     from pipeline.registry import build_registry
 
     if seeds < 1:
         raise PanoError("--seeds", "must be at least 1")
-    variants = VARIANTS if variants is None else variants
+    variants = ablation_variants(baseline) if variants is None else variants
     out_dir = Path(out_dir) if out_dir is not None else base_dir / "ablate"
     reg = build_registry()
     fields = train_param_fields()
@@ -308,19 +361,20 @@ def run_ablation(scene, base_dir: Path, base_config: dict, seeds: int = 1, itera
     table = ablation_table(rows)
     plot_ablation(rows, out_dir / "ablation.png")
     split = {r["split"] for row in rows for r in row.runs}
-    md = [f"# Ablation: {scene.name}", "",
-          f"{seeds} seed(s) per variant; iterations {iterations or 'stage default'}; "
-          f"metrics on the {'/'.join(sorted(split))} split.", "", table, "", *[f"- {n}" for n in notes]]
+    md = [f"# Ablation: {scene.name}", ""]
+    if command:
+        md += [f"`{command}`", ""]
+    md += [setting_line(rows, seeds, iterations, split, scene), "", table, "", *[f"- {n}" for n in notes]]
     if warnings:
         md += ["", *[f"> warning: {w}" for w in warnings]]
     md += ["", "![ablation](ablation.png)", ""]
     (out_dir / "ablation.md").write_text("\n".join(md))
     doc = {
-        "scene": scene.name, "seeds": seeds, "iterations": iterations, "notes": notes, "warnings": warnings,
+        "scene": scene.name, "seeds": seeds, "iterations": iterations, "command": command, "notes": notes,
+        "warnings": warnings,
         "variants": [
             {"key": r.key, "label": r.label, "settings": r.settings,
-             **{m: dict(zip(("mean", "std"), r.stat(m))) for m in ("psnr", "ssim", "ws_psnr", "lpips",
-                                                                     "train_seconds", "num_gaussians")},
+             **{m: dict(zip(("mean", "std"), r.stat(m))) for m, _ in TABLE_METRICS + TABLE_COSTS},
              "paper_psnr": PAPER_PSNR.get(r.label), "runs": r.runs}
             for r in rows
         ],
@@ -328,6 +382,23 @@ def run_ablation(scene, base_dir: Path, base_config: dict, seeds: int = 1, itera
     (out_dir / "ablation.json").write_text(json.dumps(doc, indent=1, default=_json_default))
     return {"table": table, "notes": notes, "markdown": out_dir / "ablation.md", "json": out_dir / "ablation.json",
             "chart": out_dir / "ablation.png", "rows": rows}
+
+
+def setting_line(rows: list[AblationRow], seeds: int, iterations: int | None, split: set, scene) -> str:
+    """One sentence of what was run: seeds, resolutions, preset, iterations, appearance, masks, baseline."""
+    first = rows[0].runs[0] if rows and rows[0].runs else {}
+    tr = first.get("train", {})
+    res, ev = tr.get("resolution"), first.get("eval_resolution")
+    nadir = getattr(getattr(scene, "manifest", None), "nadir_mask_deg", 0) or 0
+    parts = [f"{seeds} seed(s) per variant",
+             f"training {res[0]}×{res[1]}" if res else None, f"evaluation {ev[0]}×{ev[1]}" if ev else None,
+             f"preset {tr.get('preset')}" if tr.get("preset") else None,
+             f"iterations {iterations or tr.get('iterations') or 'stage default'}",
+             f"appearance {'on' if tr.get('appearance') else 'off'}",
+             f"nadir mask {nadir:g}°" if nadir else "no nadir mask",
+             f"3D-GS* test panoramas stitched from {first['stitched']}" if first.get("stitched") else None,
+             f"metrics on the {'/'.join(sorted(split))} split (valid pixels)"]
+    return "; ".join(p for p in parts if p) + "."
 
 
 def _json_default(o):

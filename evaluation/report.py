@@ -494,6 +494,22 @@ def view_images(edir: Path, v: dict, scene, view, img_dir: Path) -> tuple[list[t
 # ----------------------------------------------------------------------------- assembling
 
 
+def _model_cost_line(tr: dict | None, ev: dict) -> str | None:
+    """What the evaluated model cost, beside its metrics (variants compare on the same footing only
+    with these): Gaussians, iterations (one training image each), training time, and how the test
+    panoramas were made."""
+    if tr is None:
+        return None
+    td = tr["data"]
+    images = td.get("train_images")
+    proj = {"360": "360° splatting", "crops": "perspective crops", "cubemap": "cubemap"}.get(td.get("projection"),
+                                                                                              td.get("projection"))
+    how = f"test panoramas stitched from {ev['stitched']}" if ev.get("stitched") else "test panoramas rendered directly"
+    return (f"Model: {td['num_gaussians']:,} Gaussians after {td['iterations']:,} iterations "
+            f"(one training image each{f', from {images} training images' if images else ''}) "
+            f"in {td['train_seconds']:.1f} s of training; {proj}, {how}.")
+
+
 def _fmt(v, digits: int = 4) -> str:
     if v is None:
         return "—"
@@ -651,6 +667,9 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
             f"backend {d['backend']} on {d['device']}, {d['threads']} torch threads, "
             f"{d['num_gaussians']:,} Gaussians; evaluated at {w}×{h} on the {d['split']} split."
         )
+        model_cost = _model_cost_line(read_artifact(run_dir, "train"), d)
+        if model_cost:
+            doc.p(model_cost)
 
         # -- per view
         doc.h(2, "Views: ground truth / render / error / depth", "views")

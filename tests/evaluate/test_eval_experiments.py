@@ -15,7 +15,7 @@ from pipeline.errors import PanoError
 
 class _FakeTrainParams(BaseModel):
     init: Literal["auto", "random", "layout", "layout+depth"] = "auto"
-    projection: Literal["360", "cubemap"] = "360"
+    projection: Literal["360", "crops", "cubemap"] = "360"
     layout_reg: bool = True
     seed: int = 0
     iterations: int = 3000
@@ -37,9 +37,21 @@ def test_map_train_overrides():
 
     assert E.resolution_value(64, P2.model_fields["height"]) == 64
     assert E.map_train_overrides({"init": "layout"}, P2.model_fields)[0] == {"init": "layout"}
-    # every ablation step differs from the previous in exactly one setting
-    for (_, _, a), (_, _, b) in zip(E.VARIANTS, E.VARIANTS[1:]):
-        assert sum(a[k] != b[k] for k in a) == 1
+    # every ablation step differs from the previous in exactly one setting; the baseline is the crops
+    for baseline in ("crops", "cubemap"):
+        variants = E.ablation_variants(baseline)
+        assert variants[0][2]["projection"] == baseline
+        for (_, _, a), (_, _, b) in zip(variants, variants[1:]):
+            assert sum(a[k] != b[k] for k in a) == 1
+    assert E.VARIANTS == E.ablation_variants("crops")
+    with pytest.raises(PanoError, match="crops' or 'cubemap"):
+        E.ablation_variants("fisheye")
+
+
+def test_paper_config_fills_the_preset_but_explicit_settings_win():
+    cfg = E.paper_config({"train": {"height": 64}, "evaluate": {"lpips": False}})
+    assert cfg == {"train": {"height": 64, "preset": "paper"}, "evaluate": {"lpips": False, "resolution": "train"}}
+    assert E.paper_config({"train": {"preset": "fast"}})["train"]["preset"] == "fast"
 
 
 def test_pareto_mask():
@@ -64,7 +76,8 @@ def test_parse_grid():
 def _row(label, psnrs):
     r = E.AblationRow(label, label, {})
     r.runs = [{"psnr": p, "ssim": 0.5, "ws_psnr": p - 1, "lpips": None, "train_seconds": 10.0,
-               "num_gaussians": 100} for p in psnrs]
+               "num_gaussians": 100, "iterations": 500, "train_images": 32 if label in ("3D-GS*", "+ layout init") else 4}
+              for p in psnrs]
     return r
 
 
@@ -73,12 +86,17 @@ def test_ablation_notes_table_and_chart(tmp_path):
             _row("+ 360 splatting", [15.0, 16.6]), _row("+ layout reg", [15.9, 16.3])]
     assert rows[0].stat("psnr") == (13.5, pytest.approx(math.sqrt(0.5)))
     notes = E.ordering_notes(rows)
-    assert notes[0].startswith("✓ + layout init improves on 3D-GS* by +2.50 dB")
-    assert notes[1].startswith("✗ + 360 splatting does NOT improve")
-    assert notes[2].startswith("✓") and "within one seed std" in notes[2]
+    # spread of a gain: √(0.71² + 0²) = 0.71 < 2.50
+    assert notes[0] == "✓ + layout init improves on 3D-GS* by +2.50 dB, more than its spread 0.71 dB"
+    assert notes[1].startswith("✗ + 360 splatting does NOT improve") and "spread 1.13 dB" in notes[1]
+    # +0.30 dB against √(1.13² + 0.28²) = 1.17 dB
+    assert notes[2].startswith("✓") and "within its spread 1.17 dB over 2 seeds" in notes[2]
     table = E.ablation_table(rows)
     assert "| 3D-GS* | 13.50 ± 0.71 |" in table and "| 13.64 |" in table
     assert "—" in table  # LPIPS missing shows a dash, not 0
+    lines = table.splitlines()
+    assert "| +2.50 (± 0.71) | yes | 500 | 32 | 10 | 100 |" in lines[3]
+    assert "| +0.30 (± 1.17) | no | 500 | 4 | 10 | 100 |" in lines[5]
     E.plot_ablation(rows, tmp_path / "a.png")
     import cv2
 
@@ -135,7 +153,10 @@ def test_ablation_end_to_end(tiny_layout_scene, tmp_path):
     assert [v["label"] for v in doc["variants"]] == ["3D-GS*", "+ layout init", "+ 360 splatting", "+ layout reg"]
     runs = [v["runs"][0] for v in doc["variants"]]
     assert [r["train"]["init"] for r in runs] == ["random", "layout+depth", "layout+depth", "layout+depth"]
-    assert [r["train"]["projection"] for r in runs] == ["cubemap", "cubemap", "360", "360"]
+    assert [r["train"]["projection"] for r in runs] == ["crops", "crops", "360", "360"]
+    # the baseline's test panoramas are stitched from its crops; it trains on 8 crops per panorama
+    assert [r["stitched"] for r in runs] == ["8 crops of 120°, 16 px"] * 2 + [None] * 2
+    assert [r["train_images"] for r in runs] == [16, 16, 2, 2]
     assert [r["train"]["layout_reg"] for r in runs] == [False, False, False, True]
     assert all(r["train"]["iterations"] == 2 and r["psnr"] > 5 for r in runs)
     assert len(res["notes"]) == 3 and not doc["warnings"]

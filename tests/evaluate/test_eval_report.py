@@ -62,6 +62,9 @@ def test_report_has_every_section(report):
     for n in names:
         assert cv2.imread(str(report.folder / n)) is not None, n
     assert "| mean |" in md
+    # the model's cost beside its metrics (write_train_artifact: 50 iterations, 1.0 s, a 360° model)
+    assert "Gaussians after 50 iterations (one training image each) in 1.0 s of training; 360° splatting, " \
+           "test panoramas rendered directly." in md
 
 
 def test_training_series_tolerates_key_names():
