@@ -10,7 +10,7 @@ TORCH := torch==2.13.0
 APT_REQUIRED := libusb-1.0-0 libgomp1
 APT_OPTIONAL := chromium
 
-.PHONY: setup demo test bench clean-venv system-deps
+.PHONY: setup demo test bench gpu-check clean-venv system-deps
 
 setup: $(STAMP)
 
@@ -51,6 +51,10 @@ bench: setup
 	$(BIN)/pano-pipe simulate /tmp/pano-bench-sim --height 512 --views 4 --test-views 0 --effects none --profile
 	$(BIN)/pano-pipe bench pipeline --out docs
 	$(BIN)/pano-pipe bench batch --out docs
+
+# on a GPU machine: the CUDA tests with compiled kernels and both GPU benches -> docs/gpu_check/ (docs/gpu.md)
+gpu-check:
+	scripts/gpu_check.sh
 
 clean-venv:
 	rm -rf .venv

@@ -375,9 +375,22 @@ def bench_render(
     counts: Annotated[str, typer.Option(help="Gaussian counts.")] = "20000,100000,300000",
     backends: Annotated[str, typer.Option(help="cpp,torch")] = "cpp,torch",
     repeats: Annotated[int, typer.Option(help="Timed repeats (median).")] = 3,
+    device: Annotated[str, typer.Option(
+        help="cpu: the CPU table; cuda: the GPU table (512x1024 and 1024x2048, 100k-1M Gaussians, "
+             "cuda vs torch backends; bench_render_gpu.{json,md}).")] = "cpu",
     out: BenchOutOpt = BENCH_OUT,
 ) -> None:
     """Renderer speed, memory, cubemap baseline and tangent-plane accuracy, per backend."""
+    if device not in ("cpu", "cuda"):
+        raise PanoError("--device", f"must be cpu or cuda, got {device!r}")
+    if device == "cuda":
+        from splatting import bench_gpu
+
+        reason = bench_gpu.no_cuda_reason()
+        if reason:
+            raise PanoError("--device", reason)
+        bench_gpu.run_gpu_render_bench(out_json=out / "bench_render_gpu.json", out_md=out / "bench_render_gpu.md")
+        return
     from splatting.bench import main as bench_main
 
     bench_main(
@@ -388,6 +401,24 @@ def bench_render(
             *(["--quick"] if quick else []),
         ]
     )
+
+
+@bench_app.command("train")
+def bench_train_command(
+    scene: Annotated[Optional[Path], typer.Argument(help="Scene folder (default: the simulated demo scene).")] = None,
+    device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cuda",
+    preset: Annotated[str, typer.Option(help="train.preset: fast, paper or quality.")] = "paper",
+    height: Annotated[int, typer.Option(help="Panorama height of the simulated scene and of training.")] = 512,
+    out: BenchOutOpt = BENCH_OUT,
+) -> None:
+    """Iterations/s, wall time and held-out PSNR of a training preset through `run all`."""
+    from pipeline.bench_train import bench_train
+
+    if device not in ("cpu", "cuda"):
+        raise PanoError("--device", f"must be cpu or cuda, got {device!r}")
+    if preset not in ("fast", "paper", "quality"):
+        raise PanoError("--preset", f"must be fast, paper or quality, got {preset!r}")
+    bench_train(scene, device, preset, height, out / "bench_train.md", out / "bench_train.json")
 
 
 @bench_app.command("pipeline")

@@ -38,6 +38,7 @@ def test_device_is_not_part_of_the_fingerprint():
     assert small_config(device="cpu").fingerprint() == small_config(device="cuda").fingerprint()
 
 
+@pytest.mark.cuda
 def test_checkpoint_is_device_neutral_and_loads_onto_the_trainer_device(tiny_room, tmp_path, monkeypatch):
     views = load_views(tiny_room)
     tr = Trainer(_init(tiny_room), views, small_config(iterations=6, densify_from=100))
@@ -69,6 +70,7 @@ def test_checkpoint_is_device_neutral_and_loads_onto_the_trainer_device(tiny_roo
         torch.testing.assert_close(other.g.means.cpu(), tr.g.means)
 
 
+@pytest.mark.cuda
 def test_a_few_iterations_through_the_cuda_backend_match_cpp(tiny_room):
     """Three optimiser steps with the Triton kernels (interpreted without a GPU) against the C++ kernel."""
     pytest.importorskip("triton")
