@@ -51,7 +51,7 @@ def report_command(scene: SceneArg, out: OutOpt = None, config: ConfigOpt = None
         states = {name: p.state for name, p in engine.plan().items()}
     except PanoError:
         states = None  # a broken config must not stop a report of what exists
-    paths = build_report(run_dir, engine.scene, states=states)
+    paths = build_report(run_dir, engine.completed_scene(), states=states)
     ev = read_artifact(run_dir, "evaluate")
     if ev is not None:
         _print_mean(ev["data"].get("mean", {}))
@@ -191,7 +191,7 @@ def render_command(
             h, w = even_size(h, 2 * h)
             camera = equirect_camera(h, w)
     else:
-        views = path_views(engine.scene, path)
+        views = path_views(engine.completed_scene(), path)
         poses = walk_poses([v.pose_matrix for v in views], frames or 60)
         persp = perspective
         fps = fps or 24.0

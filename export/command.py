@@ -93,6 +93,8 @@ def scene_cameras(run: Path) -> tuple[list[np.ndarray] | None, str | None]:
     """Camera-to-world poses of the run's training views (from the scene its marker names),
     or (None, why not)."""
     from pipeline.paths import RUN_MARKER
+    from pipeline.engine import complete_scene
+    from pipeline.registry import build_registry
     from pipeline.scene_loader import load_scene
 
     marker = Path(run) / RUN_MARKER
@@ -106,6 +108,8 @@ def scene_cameras(run: Path) -> tuple[list[np.ndarray] | None, str | None]:
         scene = load_scene(scene_root, check_images=False)
     except PanoError as e:
         return None, str(e)
+    # poses the run recovered (the poses stage) fill in what scene.json leaves out
+    scene = complete_scene(scene, Path(run), build_registry())
     return [v.pose_matrix for v in scene.manifest.train_views()], None
 
 

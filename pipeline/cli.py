@@ -435,6 +435,24 @@ def bench_pipeline_command(
     bench_pipeline(scene, cfg, out / "bench_pipeline.md", out / "bench_pipeline.json")
 
 
+@bench_app.command("poses")
+def bench_poses_command(
+    views: Annotated[str, typer.Option(help="Comma-separated view counts, one simulated scene each.")] = "4,8,13",
+    height: Annotated[int, typer.Option(min=64, help="Panorama height (width = 2 x height).")] = 512,
+    seed: Annotated[int, typer.Option(min=0, help="Simulator seed.")] = 0,
+    threads: Annotated[Optional[int], typer.Option(min=1, help="COLMAP threads (default: all CPUs).")] = None,
+    out: BenchOutOpt = BENCH_OUT,
+) -> None:
+    """Pose simulated scenes from their panoramas alone (rig and equirect): accuracy and time."""
+    from sfm.bench import bench_poses
+
+    try:
+        counts = [int(v) for v in views.split(",") if v.strip()]
+    except ValueError:
+        raise PanoError("--views", f"must be comma-separated whole numbers, got {views!r}") from None
+    bench_poses(counts, height, seed, threads, out / "bench_poses.md", out / "bench_poses.json")
+
+
 @bench_app.command("batch")
 def bench_batch_command(
     scenes: Annotated[int, typer.Option(min=1, help="Simulated scenes in the batch.")] = 8,

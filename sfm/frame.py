@@ -196,3 +196,16 @@ def align_to_known(cam_to_world: dict[str, np.ndarray], known: dict[str, np.ndar
         res_m[v] = float(np.linalg.norm(fitted[:3, 3] - known[v][:3, 3]))
         res_deg[v] = rotation_angle_deg(fitted[:3, :3].T @ known[v][:3, :3])
     return Alignment(transform, uncertainty, source, floor=floor, residual_m=res_m, residual_deg=res_deg)
+
+
+def pose_errors(recovered: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -> dict[str, tuple[float, float]]:
+    """Per view: (position error in metres, rotation error in degrees) of camera-to-world poses after
+    the rigid motion that best aligns `recovered` to `truth` (no scale: a metric recovery must get
+    the scale itself). A scene posed from its panoramas alone is only defined up to that motion."""
+    names = [v for v in recovered if v in truth]
+    rotation = nearest_rotation(sum(truth[v][:3, :3] @ recovered[v][:3, :3].T for v in names))
+    src = np.array([rotation @ recovered[v][:3, 3] for v in names])
+    offset = np.array([truth[v][:3, 3] for v in names]).mean(axis=0) - src.mean(axis=0)
+    return {v: (float(np.linalg.norm(s + offset - truth[v][:3, 3])),
+                rotation_angle_deg((rotation @ recovered[v][:3, :3]).T @ truth[v][:3, :3]))
+            for v, s in zip(names, src)}

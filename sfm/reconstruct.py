@@ -43,7 +43,7 @@ class Panorama:
 
 @dataclass
 class SfmOptions:
-    method: Method = "rig"
+    method: Method = "equirect"
     max_features: int = 4096
     #: Verified two-view matches needed for an image pair to count (COLMAP's default 15).
     min_matches: int = 15

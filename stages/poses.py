@@ -40,8 +40,9 @@ class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     method: Literal["rig", "equirect"] = Field(
-        default="rig", description="Feed COLMAP perspective views of each panorama as a rig (rig), or the "
-                                   "panoramas with its EQUIRECTANGULAR camera (equirect); docs/poses.md.")
+        default="equirect", description="Feed COLMAP the panoramas with its EQUIRECTANGULAR camera (equirect), "
+                                        "or perspective views of each as a rig (rig: more points, 8x slower); "
+                                        "docs/poses.md.")
     working_height: int = Field(
         default=512, ge=64, le=4096, description="Panoramas are resampled to this height (never up) for SfM.")
     max_features: int = Field(default=4096, ge=100, description="SIFT features per image at most.")

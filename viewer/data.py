@@ -51,6 +51,11 @@ def resolve_target(path: Path, out: Path | None = None) -> Target:
         raise PanoError(run_dir, f"no run folder; run `pano-pipe run all {path}` first")
     if not (run_dir / MODEL_PATH).is_file():
         raise PanoError(run_dir / MODEL_PATH, f"no trained model; run `pano-pipe run all {path}` first")
+    if scene is not None:  # poses the run recovered (the poses stage) fill in what scene.json leaves out
+        from pipeline.engine import complete_scene
+        from pipeline.registry import build_registry
+
+        scene = complete_scene(scene, run_dir, build_registry())
     return Target(run_dir, scene)
 
 
