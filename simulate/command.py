@@ -59,7 +59,8 @@ def simulate_command(
     seed: int = typer.Option(0, "--seed", help="Random seed (the scene is deterministic for a seed)."),
     effects: str = typer.Option(
         "all", "--effects", help=f"Comma-separated effects from {', '.join(EFFECTS)}, or 'all' / 'none' "
-        "('all' for the demo preset: texture, furniture, shading, aa).",
+        "('all' for the demo preset: texture, furniture, shading, aa; 'all' never includes detail, the fine "
+        "non-repeating surface detail structure from motion needs: name it).",
     ),
     aa_samples: int = typer.Option(2, "--aa-samples", help="Anti-aliasing: N x N samples per pixel."),
     with_layout: bool = typer.Option(
