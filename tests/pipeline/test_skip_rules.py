@@ -33,6 +33,7 @@ def scenes(tmp_path_factory):
 
 def test_layout_and_depth_run_everything(scenes, tmp_path):
     states = {k: p.state for k, p in plan(scenes["both"], tmp_path).items()}
+    assert states.pop("poses") == "skipped"  # every view has a pose
     assert set(states.values()) == {"missing"}
 
 
