@@ -4,6 +4,7 @@ tripod and levelling base at the nadir and different exposures (skips when the d
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -11,13 +12,12 @@ import pytest
 import torch
 
 import splatting
-from conftest import SHARED_DATA
 from gaussians.init import random_points
 from gaussians.trainer import TrainConfig, Trainer, TrainView, scene_extent
 from panogeom.equirect import nadir_cap
 from schemas.scene import REAL_CAPTURE_NADIR_DEG, SceneManifest
 
-ZIND = SHARED_DATA / "zind_pair"
+ZIND = Path(__file__).resolve().parents[3] / "shared" / "data" / "zind_pair"
 pytestmark = pytest.mark.skipif(not (ZIND / "scene.json").is_file(), reason="shared zind_pair data absent")
 
 
