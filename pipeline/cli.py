@@ -28,6 +28,7 @@ from pipeline.console import console, err_console
 from pipeline.errors import PanoError
 from pipeline.fsutil import LOCK_NAME, run_folder_lock
 from pipeline.paths import check_run_folder, default_run_folder, is_run_folder
+from schemas.scene import REAL_CAPTURE_NADIR_DEG
 
 app = typer.Typer(
     name="pano-pipe",
@@ -348,17 +349,47 @@ def schema(out: Annotated[Path, typer.Argument(help="Folder to write the JSON Sc
         console.print(f"wrote {escape(str(out / (name + '.schema.json')))}")
 
 
+CameraHeightOpt = Annotated[float | None, typer.Option(
+    help="Camera height over the floor (m): scales the poses (and depth) so the cameras stand this high "
+         "over the floor found in the data (docs/poses.md).")]
+ScaleOpt = Annotated[float | None, typer.Option(help="Multiply translations (and depth) by this instead.")]
+NadirOpt = Annotated[float, typer.Option(help="nadir_mask_deg written to scene.json (tripod cap; 0: off).")]
+
+
 @app.command("import-nerfstudio")
 def import_nerfstudio_command(
     transforms: Annotated[Path, typer.Argument(help="nerfstudio transforms.json (EQUIRECTANGULAR).")],
     out: Annotated[Path, typer.Argument(help="Scene folder to write.")],
     world_up: Annotated[str, typer.Option(help="Up axis of the nerfstudio world: +z, +y or -y.")] = "+z",
     test_every: Annotated[int, typer.Option(help="Every Nth frame is a test view (0: none).")] = 8,
+    camera_height: CameraHeightOpt = None,
+    scale: ScaleOpt = None,
+    nadir_mask_deg: NadirOpt = REAL_CAPTURE_NADIR_DEG,
 ) -> None:
-    """Make a scene folder from a nerfstudio transforms.json."""
+    """Make a scene folder from a nerfstudio transforms.json (depth files kept, in metres)."""
     from pipeline.importers import import_nerfstudio
 
-    path = import_nerfstudio(transforms, out, world_up=world_up, test_every=test_every)
+    path = import_nerfstudio(transforms, out, world_up=world_up, test_every=test_every,
+                             camera_height=camera_height, scale=scale, nadir_mask_deg=nadir_mask_deg)
+    console.print(f"wrote {escape(str(path))}", soft_wrap=True)
+
+
+@app.command("import-colmap")
+def import_colmap_command(
+    model_dir: Annotated[Path, typer.Argument(help="COLMAP sparse model folder (cameras/images/points3D .bin or .txt).")],
+    images_dir: Annotated[Path, typer.Argument(help="Folder the model's image names are relative to.")],
+    out: Annotated[Path, typer.Argument(help="Scene folder to write.")],
+    camera_height: CameraHeightOpt = None,
+    scale: ScaleOpt = None,
+    test_every: Annotated[int, typer.Option(help="Every Nth image (by name) is a test view (0: none).")] = 0,
+    nadir_mask_deg: NadirOpt = REAL_CAPTURE_NADIR_DEG,
+) -> None:
+    """Make a scene folder from a COLMAP model with EQUIRECTANGULAR cameras (upright, metric)."""
+    from pipeline.importers import import_colmap
+
+    path = import_colmap(model_dir, images_dir, out, camera_height=camera_height, scale=scale,
+                         test_every=test_every, nadir_mask_deg=nadir_mask_deg,
+                         warn=lambda m: console.print(f"[yellow]warning:[/] {escape(m)}", soft_wrap=True))
     console.print(f"wrote {escape(str(path))}", soft_wrap=True)
 
 
