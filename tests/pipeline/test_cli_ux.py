@@ -91,7 +91,7 @@ def test_params_lists_type_default_and_description(capsys):
     code, out, err = run_cli(["params", "train"], capsys)
     assert code == 0
     flat = " ".join(out.split())
-    assert "train.projection" in flat and "'360' | 'cubemap'" in flat and "train.iterations" in flat
+    assert "train.projection" in flat and all(f"'{p}'" in flat for p in ("360", "crops", "cubemap")) and "train.iterations" in flat
     assert "layout.model" not in out
     code, out, err = run_cli(["params"], capsys)
     assert all(f"{stage}." in out for stage in ("layout", "depth", "union", "sampling", "align", "train",
