@@ -1,4 +1,4 @@
-"""import-colmap: a synthetic COLMAP model with equirectangular cameras comes back as the truth."""
+"""import-colmap and import-nerfstudio made metric: synthetic captures come back as the truth, depth in metres."""
 
 from __future__ import annotations
 
@@ -177,3 +177,86 @@ def test_bad_inputs_exit_2_with_one_line(capture, tmp_path, capsys):
     code, _, err = invoke(["import-colmap", model, images, tmp_path / "o", "--scale", "2", "--camera-height", "1"],
                           capsys)
     assert code == 2 and "--camera-height or --scale, not both" in one_error_line(err)
+
+
+# -- nerfstudio: depth files and metric scale ---------------------------------------------------
+
+#: nerfstudio units per metre in the synthetic transforms.json (poses and depth alike)
+UNITS_PER_METRE = 2.0
+
+
+def floor_depth(pose: np.ndarray) -> np.ndarray:
+    """[H,W] distance along each ray (metres) to the floor y = 0 and the ceiling y = -2.5."""
+    dirs = angles_to_dirs(*np.meshgrid(((np.arange(WIDTH) + 0.5) / WIDTH - 0.5) * 2 * np.pi,
+                                       (0.5 - (np.arange(HEIGHT) + 0.5) / HEIGHT) * np.pi)) @ pose[:3, :3].T
+    y0, dy = pose[1, 3], dirs[..., 1]
+    plane = np.where(dy > 0, 0.0, -2.5)
+    with np.errstate(divide="ignore"):
+        t = (plane - y0) / dy
+    return np.where(np.abs(dy) > 1e-3, t, 0.0)
+
+
+def write_transforms(folder: Path, depth_format: str | None) -> Path:
+    """transforms.json of the true poses in nerfstudio units, with depth files in `depth_format`:
+    'png' (uint16 milli-units, nerfstudio's default depth_unit_scale_factor) or 'npy' (units)."""
+    from pipeline.importers import pose_to_nerfstudio
+
+    (folder / "images").mkdir(parents=True)
+    (folder / "depths").mkdir()
+    frames = []
+    for name, pose in true_poses().items():
+        cv2.imwrite(str(folder / "images" / f"{name}.png"), np.zeros((HEIGHT, WIDTH, 3), np.uint8))
+        scaled = pose.copy()
+        scaled[:3, 3] *= UNITS_PER_METRE
+        frame = {"file_path": f"images/{name}.png", "transform_matrix": pose_to_nerfstudio(scaled).tolist()}
+        units = floor_depth(pose) * UNITS_PER_METRE
+        if depth_format == "png":
+            frame["depth_file_path"] = f"depths/{name}.png"
+            cv2.imwrite(str(folder / frame["depth_file_path"]), np.round(units * 1000).astype(np.uint16))
+        elif depth_format == "npy":
+            frame["depth_file_path"] = f"depths/{name}.npy"
+            np.save(folder / frame["depth_file_path"], units.astype(np.float64))
+        frames.append(frame)
+    meta = {"camera_model": "EQUIRECTANGULAR", "frames": frames}
+    if depth_format == "npy":
+        meta["depth_unit_scale_factor"] = 1.0
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    return folder / "transforms.json"
+
+
+def test_nerfstudio_keeps_depth_in_metres(tmp_path, capsys):
+    transforms = write_transforms(tmp_path / "ns", "png")
+    code, _, err = invoke(["import-nerfstudio", transforms, tmp_path / "scene", "--scale", "0.5",
+                           "--test-every", "0"], capsys)
+    assert code == 0, err
+    manifest = json.loads((tmp_path / "scene" / "scene.json").read_text())
+    assert manifest["nadir_mask_deg"] == REAL_CAPTURE_NADIR_DEG
+    for view in manifest["views"]:
+        pose = true_poses()[view["name"]]
+        np.testing.assert_allclose(view["pose"], pose, atol=1e-9)  # --scale 0.5 undoes 2 units per metre
+        assert view["depth"] == f"depth/{view['name']}.npy"
+        depth = np.load(tmp_path / "scene" / view["depth"])
+        truth = floor_depth(pose)
+        # PNG milli-units, rounded: half a milli-unit is a quarter of a millimetre
+        np.testing.assert_allclose(depth[truth > 0], truth[truth > 0], atol=2.6e-4)
+        assert np.all(depth[truth == 0] == 0)
+
+
+def test_nerfstudio_camera_height_from_the_depth_floor(tmp_path, capsys):
+    transforms = write_transforms(tmp_path / "ns", "npy")
+    code, _, err = invoke(["import-nerfstudio", transforms, tmp_path / "scene", "--camera-height", "1.5"], capsys)
+    assert code == 0, err
+    manifest = json.loads((tmp_path / "scene" / "scene.json").read_text())
+    for view in manifest["views"]:
+        np.testing.assert_allclose(view["pose"], true_poses()[view["name"]], atol=1e-6)
+        assert view["camera_height"] == pytest.approx(1.5, abs=1e-6)
+        truth = floor_depth(true_poses()[view["name"]])
+        np.testing.assert_allclose(np.load(tmp_path / "scene" / view["depth"]), truth, atol=1e-6)
+
+
+def test_nerfstudio_camera_height_without_depth_is_refused(tmp_path, capsys):
+    transforms = write_transforms(tmp_path / "ns", None)
+    code, _, err = invoke(["import-nerfstudio", transforms, tmp_path / "scene", "--camera-height", "1.5"], capsys)
+    assert code == 2
+    assert "--camera-height needs every frame's depth_file_path" in one_error_line(err)
+    assert not (tmp_path / "scene").exists()
