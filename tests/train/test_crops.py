@@ -17,7 +17,6 @@ from gaussians.losses import l1_loss
 from pipeline.errors import PanoError
 from pipeline.scene_loader import load_scene
 from pipeline.stage import Loaded, StageContext
-from schemas.train import TrainOutput
 from test_stage import ctx_for
 
 
