@@ -314,6 +314,8 @@ class Engine:
                 plan.state, plan.reason = "stale", problem
             else:
                 plan.state, plan.reason = "up-to-date", "scene files, parameters, code and upstream unchanged"
+            if plan.state != "up-to-date" and spec.run_reason:
+                plan.reason = f"{plan.reason}; {spec.run_reason(self.scene, params)}"
             plans[name] = plan
         return plans
 

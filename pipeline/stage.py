@@ -43,6 +43,9 @@ class StageSpec:
     #: image must not retrain the model.
     reads_views: Callable[[Scene, BaseModel], list[View]] | None = None
     skip_reason: Callable[[Scene, BaseModel], str | None] | None = None
+    #: For a stage only some scenes call for: why this one does ("3 views have no pose in
+    #: scene.json"); `status` shows it beside the cache state when the stage will run.
+    run_reason: Callable[[Scene, BaseModel], str] | None = None
     #: Source the stage depends on (its module plus libraries like splatting/);
     #: their content hash is the stage's code version.
     code: tuple[str, ...] = ()

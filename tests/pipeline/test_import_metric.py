@@ -260,3 +260,22 @@ def test_nerfstudio_camera_height_without_depth_is_refused(tmp_path, capsys):
     assert code == 2
     assert "--camera-height needs every frame's depth_file_path" in one_error_line(err)
     assert not (tmp_path / "scene").exists()
+
+
+def test_status_says_which_views_lack_a_pose(capture, tmp_path, capsys):
+    """An imported scene has every pose (poses skipped); with two left out, status says why it runs."""
+    from pipeline.engine import Engine
+    from pipeline.registry import build_registry
+    from pipeline.scene_loader import load_scene
+
+    model, images = capture
+    assert invoke(["import-colmap", model, images, tmp_path / "scene", "--scale", "1"], capsys)[0] == 0
+    plan = Engine(load_scene(tmp_path / "scene"), tmp_path / "run", build_registry()).plan()["poses"]
+    assert (plan.state, plan.reason) == ("skipped", "every view has a pose in scene.json")
+    scene_json = tmp_path / "scene" / "scene.json"
+    manifest = json.loads(scene_json.read_text())
+    for view in manifest["views"][1:3]:
+        del view["pose"]
+    scene_json.write_text(json.dumps(manifest))
+    plan = Engine(load_scene(tmp_path / "scene"), tmp_path / "run", build_registry()).plan()["poses"]
+    assert (plan.state, plan.reason) == ("missing", "never run; 2 of 4 views have no pose in scene.json")
