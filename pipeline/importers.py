@@ -5,6 +5,9 @@ is camera-to-world with OpenGL camera axes (x right, y up, z back) and its
 image centre looks along -z, so flipping the camera's y and z axes gives our
 OpenCV camera with the same pixel-to-direction mapping. nerfstudio worlds are
 usually z-up; ours is y-down, so the world is rotated by `WORLD_TO_YDOWN`.
+Depth files are kept as metres along the ray. COLMAP models with EQUIRECTANGULAR cameras
+(`import_colmap`) are made upright and metric with sfm.frame, as the poses stage does; the
+scale rules of both importers are in docs/poses.md ("Importers").
 
 The import follows the path rules of `pipeline.paths` (docs/security.md):
 
