@@ -15,7 +15,6 @@ from panogeom import angles_to_dirs
 from panogeom.equirect import angles_to_pixel, dirs_to_angles
 from pipeline.importers import SPARSE_POINTS
 from schemas.scene import REAL_CAPTURE_NADIR_DEG
-from sfm.frame import pose_errors
 from tests.clitools import invoke
 
 HEIGHT, WIDTH = 32, 64
