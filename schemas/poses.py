@@ -23,8 +23,25 @@ class ViewPose(BaseModel):
         default=None, description="Given poses: angle between the fitted and the given orientation (degrees).")
 
 
+class UprightPairReport(BaseModel):
+    """The upright-prior two-view solver (sfm.upright_pair), when it placed the views."""
+
+    yaw_deg: float = Field(description="Second view's yaw relative to the first about gravity.")
+    direction_deg: float = Field(description="Azimuth of the second view's centre seen from the first.")
+    putative_matches: int = Field(description="SIFT matches after the ratio test, one per 2° cell.")
+    guided_matches: int = Field(description="Matches found near the epipolar planes of the coarse pose.")
+    inliers: int = Field(description="Guided matches within the fine tolerance (0.3°) of the pose.")
+    residual_median_deg: float = Field(description="Median angular epipolar error of the inliers.")
+    residual_rms_deg: float = Field(description="RMS angular epipolar error of the inliers.")
+    score: float = Field(description="Coarse search score of the pose (truncated inlier count).")
+    runner_up: float = Field(description="Best coarse score at least 5° away: how distinct the pose is.")
+
+
 class PosesOutput(BaseModel):
-    method: Literal["rig", "equirect"] = Field(description="How panoramas were fed to COLMAP (docs/poses.md).")
+    method: Literal["rig", "equirect", "upright-pair"] = Field(
+        description="What placed the views: COLMAP fed perspective views (rig) or panoramas (equirect), or the "
+                    "upright two-view solver (upright-pair) (docs/poses.md).")
+    upright_pair: UprightPairReport | None = Field(default=None, description="The upright-pair solver's figures.")
     working_height: int = Field(description="Panorama height (pixels) features were extracted at.")
     views: list[ViewPose]
     frame: Literal["floor", "known poses", "known pose and floor"] = Field(

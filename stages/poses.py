@@ -1,7 +1,8 @@
 """poses: camera-to-world poses recovered from the panoramas themselves (structure from motion).
 
 A scene calls for it when some view has no pose in scene.json. pycolmap
-reconstructs every panorama (sfm.reconstruct); the reconstruction is turned
+reconstructs every panorama (sfm.reconstruct), or with method upright-pair two
+levelled panoramas are posed by sfm.upright_pair; the reconstruction is turned
 upright and metric (sfm.frame): gravity from the cameras' mean down axis, scale
 from the camera heights over the floor plane under them, or the frame of the
 views that have poses. Downstream stages see the scene with the recovered
@@ -23,11 +24,12 @@ from pipeline.console import make_progress
 from pipeline.errors import PanoError
 from pipeline.scene_loader import image_size, valid_mask
 from pipeline.stage import Loaded, StageContext
-from schemas.poses import PosesOutput, ViewPose
+from schemas.poses import PosesOutput, UprightPairReport, ViewPose
 from schemas.scene import Scene
 from sfm.frame import align_to_floor, align_to_known
 from sfm.reconstruct import STEPS as SFM_STEPS
-from sfm.reconstruct import Panorama, SfmOptions, reconstruct
+from sfm.reconstruct import Panorama, Reconstruction, SfmOptions, reconstruct
+from sfm.upright_pair import PairResult, relative_pose
 from stages.cloud_io import write_ply
 
 Output = PosesOutput
@@ -39,10 +41,11 @@ DRAWING_NAME = "cameras.png"
 class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    method: Literal["rig", "equirect"] = Field(
+    method: Literal["rig", "equirect", "upright-pair"] = Field(
         default="equirect", description="Feed COLMAP the panoramas with its EQUIRECTANGULAR camera (equirect), "
                                         "or perspective views of each as a rig (rig: more points, 8x slower); "
-                                        "docs/poses.md.")
+                                        "upright-pair: two levelled panoramas at one camera height, without "
+                                        "COLMAP, for pairs too far apart for it; docs/poses.md.")
     working_height: int = Field(
         default=512, ge=64, le=4096, description="Panoramas are resampled to this height (never up) for SfM.")
     max_features: int = Field(default=4096, ge=100, description="SIFT features per image at most.")
@@ -87,14 +90,15 @@ def run(ctx: StageContext) -> PosesOutput:
     scene, p = ctx.scene, ctx.params
     height = _working_height(scene, p)
     panoramas = _panoramas(ctx, height)
-    options = SfmOptions(method=p.method, max_features=p.max_features, min_matches=p.min_matches,
-                         threads=p.threads or -1, seed=p.seed)
-    with make_progress() as bar, tempfile.TemporaryDirectory(prefix="colmap-") as work:
-        task = bar.add_task(f"structure from motion ({p.method})", total=len(SFM_STEPS))
-        result = reconstruct(panoramas, Path(work), options,
-                             progress=lambda step: bar.update(task, advance=1, step=step))
-
     views = scene.views
+    pair = None
+    if p.method == "upright-pair":
+        if len(panoramas) != 2:
+            raise PanoError(scene.root, f"poses.method=upright-pair places two panoramas, "
+                                        f"the scene has {len(panoramas)}")
+        result, pair = _upright_pair(panoramas)
+    else:
+        result = _colmap(panoramas, p)
     if len(result.cam_from_world) < 2:
         if result.verified_pairs == 0:
             raise PanoError(scene.root, f"no two of the {len(views)} panoramas share content that structure from "
@@ -138,13 +142,38 @@ def run(ctx: StageContext) -> PosesOutput:
     points = transform.points(result.points)
     write_ply(ctx.out_dir / PLY_NAME, points, result.colors / 255.0, np.zeros_like(points))
     draw_cameras(ctx.out_dir / DRAWING_NAME, points, {v.view: np.asarray(v.pose) for v in out_views if v.registered})
+    report = None
+    if pair is not None:
+        r = pair.residual_deg
+        report = UprightPairReport(
+            yaw_deg=float(np.degrees(pair.pose.theta)), direction_deg=float(np.degrees(pair.pose.phi)),
+            putative_matches=pair.putative, guided_matches=pair.guided, inliers=pair.inliers,
+            residual_median_deg=float(np.median(r)), residual_rms_deg=float(np.sqrt(np.mean(r**2))),
+            score=pair.pose.score, runner_up=pair.pose.runner_up)
     return PosesOutput(
-        method=p.method, working_height=height, views=out_views, frame=alignment.source,
+        method=p.method, upright_pair=report, working_height=height, views=out_views, frame=alignment.source,
         scale=transform.scale, scale_uncertainty=alignment.scale_uncertainty,
         floor_tilt_deg=alignment.floor_tilt_deg, points=len(points),
         mean_track_length=float(result.track_length.mean()) if len(points) else 0.0,
         verified_pairs=result.verified_pairs, sparse_points=PLY_NAME, drawing=DRAWING_NAME,
         timings_s=result.timings)
+
+
+def _colmap(panoramas: list[Panorama], p: Params) -> Reconstruction:
+    options = SfmOptions(method=p.method, max_features=p.max_features, min_matches=p.min_matches,
+                         threads=p.threads or -1, seed=p.seed)
+    with make_progress() as bar, tempfile.TemporaryDirectory(prefix="colmap-") as work:
+        task = bar.add_task(f"structure from motion ({p.method})", total=len(SFM_STEPS))
+        return reconstruct(panoramas, Path(work), options, progress=lambda step: bar.update(task, advance=1, step=step))
+
+
+def _upright_pair(panoramas: list[Panorama]) -> tuple[Reconstruction, PairResult | None]:
+    """The upright two-view solver's reconstruction, or an empty one (no verified pair) when it
+    finds no distinct pose."""
+    pair = relative_pose(*panoramas)
+    if pair is None:
+        return Reconstruction({}, {}, {}, np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, int), 0), None
+    return pair.reconstruction, pair
 
 
 def draw_cameras(path: Path, points: np.ndarray, poses: dict[str, np.ndarray], dpi: int = 110) -> None:

@@ -1,0 +1,271 @@
+"""Relative pose of two levelled panoramas at one camera height (the upright prior).
+
+360° cameras are levelled, and a capture's panoramas are usually taken from one
+tripod height, so the pose of panorama b relative to panorama a has two degrees
+of freedom: the yaw ``theta`` of b's frame about gravity (+y) and the azimuth
+``phi`` of b's centre seen from a (the baseline is horizontal; its length is
+fixed later by the floor, sfm.frame). COLMAP's five-point RANSAC needs far more
+correct matches than two panoramas metres apart give (docs/poses.md): with
+two unknowns an exhaustive search over a grid of (theta, phi) with a truncated
+angular epipolar error finds the pose among 95 % wrong matches.
+
+Steps: SIFT on the perspective views of sfm.rig (bearings in the panorama
+frame, DESIGN.md axes), RootSIFT with a lax ratio test, at most one match per
+small cell of either sphere (a chandelier's hundred features are one
+observation, not a hundred); a coarse search over all (theta, phi); guided
+matching in a band around the winner's epipolar planes (the ratio test among
+the few candidates near the plane passes many correct matches that the global
+ratio test lost); a fine search over those; the inliers triangulated.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from panogeom.equirect import angles_to_pixel, dirs_to_angles
+from sfm.reconstruct import Panorama, Reconstruction
+from sfm.rig import VirtualRig, rotation_about_y
+
+
+@dataclass
+class UprightPairOptions:
+    #: SIFT contrast threshold (OpenCV's default 0.04 leaves too few features on indoor walls)
+    contrast_threshold: float = 0.02
+    #: ratio test of the putative matches: lax, the search is robust
+    ratio: float = 0.95
+    #: at most one putative match per cell of this size (degrees) in either panorama
+    cell_deg: float = 2.0
+    coarse_step_deg: float = 1.0
+    coarse_tau_deg: float = 1.0
+    #: guided matching: candidates within this angle of the epipolar plane, ratio test among them
+    guided_band_deg: float = 3.0
+    guided_ratio: float = 0.8
+    #: RootSIFT distance a guided match may have at most (2 is the largest possible)
+    guided_max_distance: float = 0.7
+    fine_span_deg: float = 2.5
+    fine_step_deg: float = 0.05
+    fine_tau_deg: float = 0.3
+    #: the coarse pose must score this many times the best pose at least 5° from it, and keep this
+    #: many inliers; unrelated panoramas can pass both (docs/poses.md): the caller vouches for overlap
+    min_distinct: float = 1.15
+    min_inliers: int = 20
+
+
+@dataclass
+class PairPose:
+    """Panorama b relative to panorama a: b's frame is a's turned by `theta` about +y, its centre
+    lies along (sin phi, 0, cos phi) from a's (angles in radians)."""
+
+    theta: float
+    phi: float
+    #: the search's score (truncated inlier count) and the best score at least 5° away
+    score: float
+    runner_up: float
+
+    @property
+    def a_from_b(self) -> np.ndarray:
+        """4x4 taking b's camera frame to a's, baseline of length 1."""
+        out = np.eye(4)
+        out[:3, :3] = rotation_about_y(np.degrees(self.theta))
+        out[:3, 3] = self.baseline
+        return out
+
+    @property
+    def baseline(self) -> np.ndarray:
+        return np.array([np.sin(self.phi), 0.0, np.cos(self.phi)])
+
+
+@dataclass
+class PairResult:
+    pose: PairPose
+    putative: int  # matches after the ratio test and one per cell
+    guided: int  # matches of the guided matching
+    inliers: int  # guided matches within fine_tau_deg of the fine pose
+    residual_deg: np.ndarray  # [inliers] angular epipolar error
+    reconstruction: Reconstruction
+
+
+def epipolar_error(b1: np.ndarray, w2: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For unit bearings b1 (camera a) and w2 (camera b, rotated into a's frame) and the unit
+    baseline c (broadcasting over leading axes): the larger of the two angles between a bearing
+    and the other's epipolar plane (radians), and whether the rays meet in front of both cameras."""
+    num = np.abs(np.sum(np.cross(b1, w2) * c, axis=-1))
+    ac, bc, ab = np.sum(b1 * c, axis=-1), np.sum(w2 * c, axis=-1), np.sum(b1 * w2, axis=-1)
+    sin_a = np.sqrt(np.maximum(1.0 - bc**2, 1e-12))  # |w2 x c|
+    sin_b = np.sqrt(np.maximum(1.0 - ac**2, 1e-12))  # |b1 x c|
+    error = np.arcsin(np.clip(np.maximum(num / sin_a, num / sin_b), 0.0, 1.0))
+    # b1 l1 = c + w2 l2 in least squares: both depths positive
+    return error, (ac - ab * bc > 0) & (ab * ac - bc > 0)
+
+
+def _baselines(phis: np.ndarray) -> np.ndarray:
+    return np.stack([np.sin(phis), np.zeros_like(phis), np.cos(phis)], axis=-1)
+
+
+def score_grid(b1: np.ndarray, b2: np.ndarray, thetas: np.ndarray, phis: np.ndarray, tau: float) -> np.ndarray:
+    """[T,P] truncated quadratic score sum(1 - min(e / tau, 1)^2) of the correspondences b1[i] <->
+    b2[i] for every (theta, phi); a match whose rays meet behind a camera scores 0."""
+    c = _baselines(phis)  # [P,3]
+    ac = b1 @ c.T  # [N,P]
+    sin_b = np.sqrt(np.maximum(1.0 - ac**2, 1e-12))
+    out = np.zeros((len(thetas), len(phis)))
+    for i, theta in enumerate(thetas):
+        w2 = b2 @ rotation_about_y(np.degrees(theta)).T
+        num = np.abs(np.cross(b1, w2) @ c.T)
+        bc = w2 @ c.T
+        ab = np.sum(b1 * w2, axis=1)[:, None]
+        error = np.arcsin(np.clip(np.maximum(num / np.sqrt(np.maximum(1.0 - bc**2, 1e-12)), num / sin_b), 0.0, 1.0))
+        front = (ac - ab * bc > 0) & (ab * ac - bc > 0)
+        out[i] = np.sum(np.where(front, 1.0 - np.minimum(error / tau, 1.0) ** 2, 0.0), axis=0)
+    return out
+
+
+def _wrapped_distance(n: int, k: int) -> np.ndarray:
+    d = np.abs(np.arange(n) - k)
+    return np.minimum(d, n - d)
+
+
+def search_pose(b1: np.ndarray, b2: np.ndarray, step_deg: float = 1.0, tau_deg: float = 1.0,
+                around: PairPose | None = None, span_deg: float = 180.0) -> PairPose:
+    """The (theta, phi) of the grid (step `step_deg`, over every angle or within `span_deg` of
+    `around`) with the best truncated score of the correspondences b1 <-> b2."""
+    offsets = np.radians(np.arange(-span_deg, span_deg, step_deg))
+    if around is None:
+        thetas = phis = np.radians(np.arange(0.0, 360.0, step_deg))
+    else:
+        thetas, phis = around.theta + offsets, around.phi + offsets
+    scores = score_grid(b1, b2, thetas, phis, np.radians(tau_deg))
+    i, j = np.unravel_index(np.argmax(scores), scores.shape)
+    runner_up = 0.0
+    if around is None:
+        radius = int(np.ceil(5.0 / step_deg))
+        near_theta = _wrapped_distance(len(thetas), i) <= radius
+        far = ~(near_theta[:, None] & (_wrapped_distance(len(phis), j) <= radius)[None])
+        runner_up = float(scores[far].max())
+    theta = float(np.mod(thetas[i] + np.pi, 2 * np.pi) - np.pi)
+    phi = float(np.mod(phis[j] + np.pi, 2 * np.pi) - np.pi)
+    return PairPose(theta, phi, float(scores[i, j]), runner_up)
+
+
+def features(pano: Panorama, options: UprightPairOptions) -> tuple[np.ndarray, np.ndarray]:
+    """Unit bearings [N,3] in the panorama frame and RootSIFT descriptors [N,128] of SIFT features
+    found on the panorama's perspective views (sfm.rig), outside its invalid pixels."""
+    rig = VirtualRig(pano.rgb.shape[0])
+    sift = cv2.SIFT_create(contrastThreshold=options.contrast_threshold)
+    dirs, descs = [], []
+    bgr = cv2.cvtColor(pano.rgb, cv2.COLOR_RGB2BGR)
+    for (image, mask), pano_from_cam in zip(rig.render(bgr, pano.valid), rig.pano_from_cams):
+        keypoints, desc = sift.detectAndCompute(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), mask)
+        if desc is None:
+            continue
+        # OpenCV puts pixel centres at integers, the rig's rays at +0.5 (sfm.rig)
+        uv = (np.array([k.pt for k in keypoints]) + 0.5 - rig.size / 2.0) / rig.focal
+        rays = np.column_stack([uv, np.ones(len(uv))]) @ pano_from_cam.T
+        dirs.append(rays / np.linalg.norm(rays, axis=1, keepdims=True))
+        desc = desc / (desc.sum(axis=1, keepdims=True) + 1e-9)
+        descs.append(np.sqrt(desc).astype(np.float32))
+    if not dirs:
+        return np.zeros((0, 3)), np.zeros((0, 128), np.float32)
+    return np.concatenate(dirs), np.concatenate(descs)
+
+
+def _cells(bearings: np.ndarray, cell_deg: float) -> np.ndarray:
+    lon = np.degrees(np.arctan2(bearings[:, 0], bearings[:, 2]))
+    lat = np.degrees(np.arcsin(np.clip(-bearings[:, 1], -1.0, 1.0)))
+    column = np.floor((lon + 180.0) / cell_deg).astype(np.int64)
+    return column * 100000 + np.floor((lat + 90.0) / cell_deg).astype(np.int64)
+
+
+def putative_matches(b1: np.ndarray, b2: np.ndarray, distance: np.ndarray, options: UprightPairOptions) -> np.ndarray:
+    """[M,2] index pairs: nearest neighbours passing the ratio test, then the best (smallest
+    distance) of those in each cell of either sphere."""
+    if distance.shape[1] < 2:
+        return np.zeros((0, 2), int)
+    nearest = np.argsort(distance, axis=1)[:, :2]
+    d = np.take_along_axis(distance, nearest, axis=1)
+    pairs = np.column_stack([np.arange(len(b1)), nearest[:, 0]])[d[:, 0] < options.ratio * d[:, 1]]
+    pairs = pairs[np.argsort(distance[pairs[:, 0], pairs[:, 1]], kind="stable")]
+    first = np.zeros(len(pairs), bool)
+    first[np.unique(_cells(b1[pairs[:, 0]], options.cell_deg), return_index=True)[1]] = True
+    second = np.zeros(len(pairs), bool)
+    second[np.unique(_cells(b2[pairs[:, 1]], options.cell_deg), return_index=True)[1]] = True
+    return pairs[first & second]
+
+
+def guided_matches(b1: np.ndarray, b2: np.ndarray, distance: np.ndarray, pose: PairPose,
+                   options: UprightPairOptions, chunk: int = 512) -> np.ndarray:
+    """[M,2] index pairs: for each feature of a, the nearest feature of b among those within
+    guided_band_deg of its epipolar plane (in front of both cameras), if it passes a ratio test
+    against the second nearest there and is close enough."""
+    w2 = b2 @ pose.a_from_b[:3, :3].T
+    c = pose.baseline
+    band = np.radians(options.guided_band_deg)
+    out = []
+    for start in range(0, len(b1), chunk):
+        error, front = epipolar_error(b1[start:start + chunk, None], w2[None], c)
+        d = np.where(front & (error < band), distance[start:start + chunk], np.inf)
+        nearest = np.argsort(d, axis=1)[:, :2]
+        v = np.take_along_axis(d, nearest, axis=1)
+        if v.shape[1] < 2:
+            v = np.column_stack([v, np.full(len(v), np.inf)])
+        ok = np.isfinite(v[:, 0]) & (v[:, 0] < options.guided_ratio * v[:, 1]) & (v[:, 0] < options.guided_max_distance)
+        out.extend((start + k, nearest[k, 0]) for k in np.flatnonzero(ok))
+    return np.array(out, dtype=int).reshape(-1, 2)
+
+
+def triangulate(b1: np.ndarray, w2: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Midpoints [N,3] of the closest points of the rays b1 (from the origin) and w2 (from c)."""
+    ab, ac, bc = np.sum(b1 * w2, axis=1), b1 @ c, w2 @ c
+    den = np.maximum(1.0 - ab**2, 1e-12)
+    l1, l2 = (ac - ab * bc) / den, (ab * ac - bc) / den
+    return 0.5 * (l1[:, None] * b1 + c + l2[:, None] * w2)
+
+
+def relative_pose(a: Panorama, b: Panorama, options: UprightPairOptions | None = None) -> PairResult | None:
+    """The upright relative pose of panorama b to a and the triangulated inliers as a
+    Reconstruction in a's frame (baseline 1); None when too few matches are left to search, the
+    best pose is not clearly better than every other, or too few inliers remain."""
+    options = options or UprightPairOptions()
+    f1, d1 = features(a, options)
+    f2, d2 = features(b, options)
+    if len(f1) < 2 or len(f2) < 2:
+        return None
+    distance = np.sqrt(np.maximum(2.0 - 2.0 * (d1 @ d2.T), 0.0))  # RootSIFT descriptors are unit
+    pairs = putative_matches(f1, f2, distance, options)
+    if len(pairs) < 8:
+        return None
+    coarse = search_pose(f1[pairs[:, 0]], f2[pairs[:, 1]], options.coarse_step_deg, options.coarse_tau_deg)
+    if coarse.score < options.min_distinct * coarse.runner_up:
+        return None
+    guided = guided_matches(f1, f2, distance, coarse, options)
+    if len(guided) < 8:
+        return None
+    g1, g2 = f1[guided[:, 0]], f2[guided[:, 1]]
+    fine = search_pose(g1, g2, options.fine_step_deg, options.fine_tau_deg, around=coarse,
+                       span_deg=options.fine_span_deg)
+    pose = PairPose(fine.theta, fine.phi, coarse.score, coarse.runner_up)
+    w2 = g2 @ pose.a_from_b[:3, :3].T
+    error, front = epipolar_error(g1, w2, pose.baseline)
+    inliers = front & (error < np.radians(options.fine_tau_deg))
+    if inliers.sum() < options.min_inliers:
+        return None
+    points = triangulate(g1[inliers], w2[inliers], pose.baseline)
+    colors = np.array([_color(a, x) for x in g1[inliers]], dtype=np.uint8).reshape(-1, 3)
+    residual = np.degrees(error[inliers])
+    # equirect pixels per radian, to report the angular error where COLMAP reports pixels
+    px = a.rgb.shape[1] / (2.0 * np.pi) * np.radians(float(residual.mean()) if len(residual) else 0.0)
+    recon = Reconstruction(
+        cam_from_world={a.name: np.eye(4), b.name: np.linalg.inv(pose.a_from_b)},
+        reprojection_error={a.name: px, b.name: px},
+        observations={a.name: int(inliers.sum()), b.name: int(inliers.sum())},
+        points=points, colors=colors, track_length=np.full(len(points), 2), verified_pairs=1)
+    return PairResult(pose, len(pairs), len(guided), int(inliers.sum()), residual, recon)
+
+
+def _color(pano: Panorama, bearing: np.ndarray) -> np.ndarray:
+    h, w = pano.rgb.shape[:2]
+    col, row = angles_to_pixel(*dirs_to_angles(bearing), h, w)
+    return pano.rgb[int(np.clip(round(float(row)), 0, h - 1)), int(round(float(col))) % w]
