@@ -17,12 +17,6 @@ def train_views(scene: Scene, params) -> list[View]:
     return scene.manifest.train_views()
 
 
-def unposed_reason(scene: Scene, params) -> str:
-    """Why a scene calls for the poses stage (its skip_reason says when it does not)."""
-    n = len(scene.manifest.unposed_views())
-    return f"{n} of {len(scene.views)} views have no pose in scene.json"
-
-
 def torch_resources(params) -> dict[str, float]:
     """A torch stage: its `threads` CPUs (1 when unset: a batch runs stages side by side), and a
     GPU when its `device` setting names CUDA."""
@@ -38,7 +32,7 @@ def build_registry() -> dict[str, StageSpec]:
     specs = [
         StageSpec(
             "poses", poses.Params, poses.Output, poses.run, scene_inputs=("images", "masks"),
-            skip_reason=poses.skip_reason, run_reason=unposed_reason, completes_scene=poses.complete_scene,
+            skip_reason=poses.skip_reason, run_reason=poses.run_reason, completes_scene=poses.complete_scene,
             code=("stages.poses", "sfm", "panogeom"),
             description="camera poses from the panoramas (structure from motion), upright and metric",
         ),

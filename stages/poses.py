@@ -63,6 +63,12 @@ def skip_reason(scene: Scene, params: Params) -> str | None:
     return None
 
 
+def run_reason(scene: Scene, params: Params) -> str:
+    """Why a scene calls for the stage (skip_reason says when it does not)."""
+    n = len(scene.manifest.unposed_views())
+    return f"{n} of {len(scene.views)} views have no pose in scene.json"
+
+
 def complete_scene(scene: Scene, artifact: Loaded) -> Scene:
     """The scene with the recovered poses filled in, unregistered views left out."""
     return scene.with_poses({v.view: v.pose for v in artifact.data.views if v.registered and v.pose is not None})
