@@ -56,7 +56,7 @@ from pipeline.paths import (
 from panogeom import angles_to_dirs
 from panogeom.equirect import pixel_to_angles
 from schemas.scene import MAX_CAMERA_HEIGHT, REAL_CAPTURE_NADIR_DEG, SceneManifest, View
-from sfm.frame import MAX_FLOOR_TILT_DEG, Similarity, align_to_floor, fit_floor, metric_scale, upright_rotation
+from sfm.frame import MAX_FLOOR_TILT_DEG, Similarity, align_to_floor, fit_floor, metric_scale
 from stages.cloud_io import write_ply
 
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -585,24 +585,17 @@ def _colmap_alignment(cam_to_world: dict[str, np.ndarray], points: np.ndarray, o
                       warn: Callable[[str], None] | None) -> tuple[Similarity, list[float | None]]:
     """SfM frame -> world, and each camera's height over the floor in metres (None where no
     floor was found)."""
-    if scale is None:
-        if camera_height is None:  # as the poses stage does without camera_height in scene.json
-            from stages.poses import Params
+    if scale is None and camera_height is None:  # as the poses stage does without camera_height in scene.json
+        from stages.poses import Params
 
-            camera_height = Params.model_fields["default_camera_height"].default
-            if warn is not None:
-                warn(f"no --camera-height or --scale: the scale assumes cameras {camera_height:g} m over the floor")
-        height = camera_height
-        try:
-            alignment = align_to_floor(cam_to_world, points, dict.fromkeys(order, height), order)
-        except ValueError as e:
-            raise PanoError(model_dir, f"cannot make the poses metric: {e}; give --scale") from None
-        transform, floor = alignment.transform, alignment.floor
-    else:  # upright and placed as align_to_floor does, at the given scale
-        up = upright_rotation([cam_to_world[v] for v in order])
-        transform = Similarity(scale, up, -scale * (up @ cam_to_world[order[0]][:3, 3]))
-        centres = np.array([up @ cam_to_world[v][:3, 3] for v in order])
-        floor = fit_floor(points @ up.T, centres)
+        camera_height = Params.model_fields["default_camera_height"].default
+        if warn is not None:
+            warn(f"no --camera-height or --scale: the scale assumes cameras {camera_height:g} m over the floor")
+    try:
+        alignment = align_to_floor(cam_to_world, points, dict.fromkeys(order, camera_height), order, scale=scale)
+    except ValueError as e:
+        raise PanoError(model_dir, f"cannot make the poses metric: {e}; give --scale") from None
+    transform, floor = alignment.transform, alignment.floor
     if floor is None:
         return transform, [None] * len(order)
     centres = np.array([transform.rotation @ cam_to_world[v][:3, 3] for v in order])

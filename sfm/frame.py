@@ -62,7 +62,7 @@ class Alignment:
     transform: Similarity
     #: relative standard uncertainty of the scale (0.01 = 1 %)
     scale_uncertainty: float
-    source: str  # "floor" or "known poses"
+    source: str  # "floor", "known poses" or "given scale"
     floor: Floor | None = None
     floor_tilt_deg: float | None = None
     #: known views only: distance (m) and angle (degrees) between the fitted and the given pose
@@ -153,13 +153,19 @@ def metric_scale(heights_sfm: np.ndarray, heights_m: np.ndarray, floor: Floor) -
 
 
 def align_to_floor(cam_to_world: dict[str, np.ndarray], points: np.ndarray, heights: dict[str, float],
-                   order: list[str]) -> Alignment:
+                   order: list[str], scale: float | None = None) -> Alignment:
     """Upright and metric alignment without known poses; `order` puts the view that defines the
-    origin and the forward axis first. Raises ValueError when no floor is found."""
+    origin and the forward axis first. The scale puts the cameras `heights` over the floor fitted
+    to the points, or is the given `scale` (the floor, where found, is then only measured).
+    Raises ValueError when the scale needs a floor and none is found."""
     names = [v for v in order if v in cam_to_world]
     up = upright_rotation([cam_to_world[v] for v in names])
     centres = np.array([cam_to_world[v][:3, 3] for v in names]) @ up.T
     floor = fit_floor(points @ up.T, centres)
+    tilt = None if floor is None else rotation_angle_deg(rotation_between(floor.normal, np.array([0.0, 1.0, 0.0])))
+    if scale is not None:
+        return Alignment(Similarity(scale, up, -scale * centres[0]), 0.0, "given scale", floor=floor,
+                         floor_tilt_deg=tilt)
     if floor is None:
         raise ValueError("no floor plane among the sparse points below the cameras, so no metric scale")
     d = floor.height_above(centres)
@@ -167,7 +173,6 @@ def align_to_floor(cam_to_world: dict[str, np.ndarray], points: np.ndarray, heig
         raise ValueError("the fitted floor plane is not below every camera")
     scale, uncertainty = metric_scale(d, np.array([heights[v] for v in names]), floor)
     transform = Similarity(scale, up, -scale * centres[0])
-    tilt = rotation_angle_deg(rotation_between(floor.normal, np.array([0.0, 1.0, 0.0])))
     return Alignment(transform, uncertainty, "floor", floor=floor, floor_tilt_deg=tilt)
 
 
