@@ -56,7 +56,8 @@ class Params(BaseModel):
         "(torch hub cache for the backbone, the lpips wheel for the heads).",
     )
     lpips_download: bool = Field(
-        default=True, description="Download a missing LPIPS backbone into the torch hub cache (off: $PANO_PIPE_OFFLINE).")
+        default=True,
+        description="Download a missing LPIPS backbone into the torch hub cache (off: $PANO_PIPE_OFFLINE).")
     fps_repeats: int = Field(default=5, ge=1, description="Renders timed for the median FPS.")
     background: tuple[float, float, float] | None = Field(
         default=None, description="Background colour behind the splats (None: the one training used)."
@@ -170,6 +171,21 @@ def stitch_rig(tdata, size: tuple[int, int]):
     return tdata.crops.rig(max(2, round(tdata.crops.size * size[0] / tdata.resolution[0])))
 
 
+def render_seconds(render_once, device: str) -> float:
+    """Seconds one call of `render_once` takes: on CUDA the device time between two events (the
+    render and its download), not the host-side launch time."""
+    if device != "cuda":
+        t0 = time.perf_counter()
+        render_once()
+        return time.perf_counter() - t0
+    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+    start.record()
+    render_once()
+    end.record()
+    end.synchronize()
+    return start.elapsed_time(end) / 1000.0
+
+
 def train_background(train_dir: Path) -> tuple[float, float, float] | None:
     """The background the model was trained against (train artifact's meta.params), if recorded."""
     import json
@@ -259,21 +275,9 @@ def run(ctx: StageContext) -> EvaluateOutput:
             )
 
         # Speed: the first view again, timed; its first render above was the warm-up.
-        pose = views[0].pose_matrix
-        cam = equirect_camera(*size)
-        times = []
-        for _ in range(p.fps_repeats):
-            if device == "cuda":  # device time of the render (and its download), not host-side launch time
-                start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-                start.record()
-                render_pose(g, pose, cam, backend=p.backend, background=background, rig=stitch_rig(tdata, size))
-                end.record()
-                end.synchronize()
-                times.append(start.elapsed_time(end) / 1000.0)
-                continue
-            t0 = time.perf_counter()
-            render_pose(g, pose, cam, backend=p.backend, background=background, rig=stitch_rig(tdata, size))
-            times.append(time.perf_counter() - t0)
+        pose, cam, rig = views[0].pose_matrix, equirect_camera(*size), stitch_rig(tdata, size)
+        times = [render_seconds(lambda: render_pose(g, pose, cam, backend=p.backend, background=background, rig=rig),
+                                device) for _ in range(p.fps_repeats)]
         fps = 1.0 / max(statistics.median(times), 1e-9)
         threads = torch.get_num_threads()
     finally:
