@@ -523,6 +523,7 @@ def _register_commands() -> None:
     from evaluation.commands import ablate_command, render_command, report_command, sweep_command
     from layoutnet.command import export_layout_model_command
     from export.command import export_command
+    from models.command import models_app
     from simulate.command import simulate_command
     from viewer.command import view_command
 
@@ -534,6 +535,7 @@ def _register_commands() -> None:
     app.command("render")(render_command)
     app.command("view")(view_command)
     app.command("export")(export_command)
+    app.add_typer(models_app, name="models")
 
 
 _register_commands()
