@@ -4,11 +4,13 @@
    metric room (floor y = +h, ceiling y = -d, vertical walls on the floor
    polygon, all in the camera frame) -> layout depth and a wall/floor/ceiling
    label (`layout_depth`, `layout_depth_map`).
-2. One global fit over the views' labelled pixels, robust to furniture and
-   noise: RANSAC on minimal samples, then reweighted least squares on the
-   inliers (relative error below `inlier_threshold`). Metric depth: scale;
-   relative depth: scale and shift; disparity: scale and shift in inverse
-   depth (`fit_scale`).
+2. A robust fit of the depth to the layout depth, robust to furniture and
+   noise: RANSAC on minimal samples, least squares on the inliers (relative
+   error below `inlier_threshold`), then IRLS with Tukey's biweight. The
+   model of depth decides the unknowns and the groups: metric distance, one
+   scale for all views (the paper's global factor); affine depth, scale and
+   shift; affine inverse depth (Depth Anything), scale and shift in inverse
+   depth, 1/d = s*v + t, per view (`fit_scale`).
 3. Refinement against the layout cloud by a scale-only point-to-plane ICP
    (`refine_scale_icp`): the scale acts about each camera centre because the
    poses are fixed; a similarity ICP would move the cameras.
@@ -34,12 +36,14 @@ from pipeline.errors import PanoError
 from pipeline.scene_loader import valid_mask
 from pipeline.stage import StageContext
 from schemas.align import AlignOutput, KindFit
+from schemas.depth import DEPTH_MODELS
 from schemas.scene import Scene
 
 Output = AlignOutput
 
 Kind = Literal["metric", "relative", "disparity"]
 LABELS = {name: k for k, name in enumerate(SURFACE_NAMES)}
+EQUATIONS = {"metric": "d = s*v", "relative": "d = s*v + t", "disparity": "1/d = s*v + t"}
 
 
 class Params(BaseModel):
@@ -204,6 +208,34 @@ def _design(v: np.ndarray, target: np.ndarray, kind: str):
     raise ValueError(f"unknown depth kind {kind!r}")
 
 
+TUKEY_C = 4.685  # Tukey biweight tuning constant: 95 % efficiency under Gaussian noise
+
+
+def _irls_tukey(x, y, w, beta, threshold: float, m: int, iterations: int = 50) -> np.ndarray:
+    """Iteratively reweighted least squares with Tukey's biweight on the relative residuals
+    w*(x@beta - y), from `beta`. The residual scale is 1.4826*MAD of the residuals within
+    `threshold`, re-estimated each iteration; the cut-off c = 4.685*scale never exceeds `threshold`.
+    Pixels beyond c get weight 0 (furniture, clutter), those near 0 weight ~1."""
+    for _ in range(iterations):
+        r = w * (x @ beta - y)
+        near = np.abs(r) < threshold
+        if near.sum() <= 10 * m:
+            break
+        sigma = 1.4826 * float(np.median(np.abs(r[near])))
+        c = min(threshold, max(TUKEY_C * sigma, 1e-6))
+        u = r / c
+        tw = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+        sw = w * np.sqrt(tw)
+        if (tw > 0).sum() <= 10 * m:
+            break
+        new, *_ = np.linalg.lstsq(x * sw[:, None], y * sw, rcond=None)
+        done = np.all(np.abs(new - beta) <= 1e-10 + 1e-8 * np.abs(beta))
+        beta = new
+        if done:
+            break
+    return beta
+
+
 def fit_scale(
     values: np.ndarray,
     layout: np.ndarray,
@@ -220,7 +252,9 @@ def fit_scale(
 
     RANSAC over minimal samples scores hypotheses by the share of pixels whose
     relative depth error is below `inlier_threshold`; the best is refined by
-    weighted least squares on its inliers until the inlier set settles.
+    weighted least squares on its inliers until the inlier set settles, then
+    by IRLS with Tukey's biweight (`_irls_tukey`). Metric: d = s*v; relative:
+    d = s*v + t; disparity: 1/d = s*v + t (scale and shift in inverse depth).
     Raises PanoError when too few pixels exist or agree.
     """
     v = np.asarray(values, dtype=np.float64).reshape(-1)
@@ -274,14 +308,11 @@ def fit_scale(
             break
         inl = inl_new
     share = float(inl.mean()) if n else 0.0
-    # Clean data: tighten to 3 robust sigmas of the inliers' residuals, which drops the clutter
-    # that happens to lie within the user threshold (furniture against a wall); noisy data keeps it.
-    if inl.sum() > 10 * m:
-        r = np.abs(w * (x @ best - y))
-        tight = min(inlier_threshold, max(3 * 1.4826 * float(np.median(r[inl])), 1e-5))
-        sel = r < tight
-        if tight < inlier_threshold and sel.sum() > 10 * m:
-            best, *_ = np.linalg.lstsq(x[sel] * w[sel][:, None], y[sel] * w[sel], rcond=None)
+    # Then Tukey's biweight by IRLS from there: clutter within the user threshold (furniture against
+    # a wall) weighs less the further it lies, and clean pixels are not cut off at a hard edge.
+    best = _irls_tukey(x, y, w, best, inlier_threshold, m)
+    inl = np.abs(w * (x @ best - y)) < inlier_threshold
+    share = float(inl.mean()) if n else 0.0
     scale = float(best[0])
     shift = float(best[1]) if m == 2 else 0.0
     if share < min_inlier_share or not np.isfinite(scale):
@@ -567,6 +598,7 @@ def run(ctx: StageContext[Params]) -> AlignOutput:
         reports.append(
             KindFit(
                 kind=fit.kind,
+                depth_model=f"{DEPTH_MODELS[fit.kind]} ({EQUATIONS[fit.kind]})",
                 views=[v.name for v in groups[key]],
                 scale=scale,
                 shift=shift,

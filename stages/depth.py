@@ -39,19 +39,29 @@ class Params(BaseModel):
         default=None,
         description="ONNX depth model; a relative path is tried from the working folder, then the scene.",
     )
-    output: Literal["metric", "relative", "disparity"] = Field(
-        default="metric", description="What the model outputs."
+    output: Literal["metric", "relative", "disparity"] | None = Field(
+        default=None,
+        description="What the model outputs: metric (metres along the ray or axis), relative (depth up to "
+        "scale and shift) or disparity (inverse depth up to scale and shift, Depth Anything). None: what "
+        "the model's metadata records (pano-pipe's exports do), else metric.",
     )
-    normalization: Literal["unit", "imagenet"] = "unit"
+    normalization: Literal["unit", "imagenet"] | None = Field(
+        default=None, description="None: from the model's metadata, else unit ([0,1] RGB)."
+    )
     input_size: tuple[int, int] | None = Field(default=None, description="(H, W) fed to the model.")
-    multiple_of: int = Field(
-        default=1, ge=1, description="Input sides a multiple of this (14: Depth Anything)."
+    multiple_of: int | None = Field(
+        default=None, ge=1, description="Input sides a multiple of this (14: Depth Anything); None: from the "
+        "model's metadata, else 1."
     )
     max_height: int = Field(default=512, ge=8, description="Model input height cap when its size is dynamic.")
-    projection: Literal["equirect", "cubemap"] = Field(
-        default="equirect", description="equirect: 360° model; cubemap: perspective model on six cube faces."
+    projection: Literal["equirect", "cubemap"] | None = Field(
+        default=None, description="equirect: 360° model; cubemap: perspective model on six cube faces. None: "
+        "from the model's metadata, else equirect."
     )
-    face_size: int = Field(default=256, ge=8)
+    face_size: int | None = Field(
+        default=None, ge=8, description="Cube face side (px) for a model of dynamic size; None: from the "
+        "model's metadata, else 256."
+    )
     face_fov_deg: float = Field(default=100.0, ge=90.0, lt=170.0)
     perspective_axis: Literal["z", "ray"] = "z"
     prefer: Literal["file", "model"] = Field(
@@ -70,20 +80,11 @@ class Params(BaseModel):
         default=None, description="onnxruntime providers; None: CUDA when available, else CPU."
     )
 
-    def contract(self):
+    def contract_overrides(self) -> dict:
+        """The contract settings given here; the rest come from the model's metadata or the defaults."""
         from depthnet.runner import DepthContract
 
-        return DepthContract(
-            output=self.output,
-            normalization=self.normalization,
-            input_size=self.input_size,
-            multiple_of=self.multiple_of,
-            max_height=self.max_height,
-            projection=self.projection,
-            face_size=self.face_size,
-            face_fov_deg=self.face_fov_deg,
-            perspective_axis=self.perspective_axis,
-        )
+        return {k: v for k in DepthContract.model_fields if (v := getattr(self, k)) is not None}
 
 
 def skip_reason(scene: Scene, params: Params) -> str | None:
@@ -158,9 +159,7 @@ def run(ctx: StageContext[Params]) -> DepthOutput:
     if p.model:
         from depthnet.runner import OnnxDepthModel
 
-        model = OnnxDepthModel(
-            p.model, p.contract(), threads=p.threads, providers=p.providers
-        )
+        model = OnnxDepthModel(p.model, threads=p.threads, providers=p.providers, overrides=p.contract_overrides())
 
     views = scene.manifest.train_views()
     results: list[ViewDepth] = []
@@ -173,7 +172,7 @@ def run(ctx: StageContext[Params]) -> DepthOutput:
         elif model is not None:
             rgb = read_rgb(scene.image_path(view))
             values, info = _run_model(model, rgb, p)
-            kind, source = p.output, "model"
+            kind, source = model.contract.output, "model"
         else:
             ctx.warn(f"view {view.name}: no depth file and no model; it gets no depth")
             continue
@@ -194,7 +193,12 @@ def run(ctx: StageContext[Params]) -> DepthOutput:
         )
     if not results:
         raise PanoError(scene.root, "no train view has depth (no depth files, no depth.model)")
-    return DepthOutput(views=results)
+    return DepthOutput(
+        views=results,
+        model=str(p.model) if model is not None else None,
+        network=model.description.get("architecture") if model is not None else None,
+        contract=model.contract.model_dump(mode="json") if model is not None else None,
+    )
 
 
 def _run_model(model, rgb: np.ndarray, p: Params) -> tuple[np.ndarray, dict]:
@@ -205,7 +209,7 @@ def _run_model(model, rgb: np.ndarray, p: Params) -> tuple[np.ndarray, dict]:
     oh = p.output_height or min(rgb.shape[0], 512)
     hw = (oh, 2 * oh)
     info = {"model_input": model.input_hw(rgb.shape[:2])}
-    if p.projection == "cubemap":
+    if model.contract.projection == "cubemap":
         values, faces = run_cubemap(model, rgb, hw)
         return values, {**info, **faces}
     return run_equirect(model, rgb, hw), info
