@@ -30,6 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from depthnet.runner import CONTRACT_METADATA_KEY, MODEL_METADATA_KEY
 from pipeline.errors import PanoError
 
 PATCH = 14
@@ -43,8 +44,6 @@ CONTRACT = {
     "multiple_of": PATCH,
     "projection": "cubemap",
 }
-METADATA_CONTRACT = "pano_pipe.depth_contract"
-METADATA_MODEL = "pano_pipe.depth_model"
 
 
 @dataclass(frozen=True)
@@ -420,8 +419,8 @@ def export_module(
     proto = onnx.load(str(tmp))
     contract = {**CONTRACT, "face_size": face_size}
     for key, value in (
-        (METADATA_CONTRACT, json.dumps(contract)),
-        (METADATA_MODEL, json.dumps({"architecture": f"Depth Anything V2 ({model.cfg.name})",
+        (CONTRACT_METADATA_KEY, json.dumps(contract)),
+        (MODEL_METADATA_KEY, json.dumps({"architecture": f"Depth Anything V2 ({model.cfg.name})",
                                      "depth_model": "affine inverse depth", "config": asdict(model.cfg)})),
     ):
         entry = proto.metadata_props.add()

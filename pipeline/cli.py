@@ -521,6 +521,7 @@ def user_errors(fn):
 def _register_commands() -> None:
     """Commands that live beside the package they drive."""
     from evaluation.commands import ablate_command, render_command, report_command, sweep_command
+    from depthnet.command import export_depth_model_command
     from layoutnet.command import export_layout_model_command
     from export.command import export_command
     from models.command import models_app
@@ -529,6 +530,7 @@ def _register_commands() -> None:
 
     app.command("simulate")(user_errors(simulate_command))
     app.command("export-layout-model")(export_layout_model_command)
+    app.command("export-depth-model")(export_depth_model_command)
     app.command("report")(report_command)
     app.command("ablate")(ablate_command)
     app.command("sweep")(sweep_command)
