@@ -25,15 +25,17 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from panogeom.equirect import angles_to_pixel, dirs_to_angles
+from panogeom.equirect import angles_to_dirs, angles_to_pixel, column_longitudes, dirs_to_angles
 from panogeom.rotate import level_rotation, rotate_equirect, yaw_matrix, yaw_tilt_deg
 
-__all__ = ["Alignment", "line_segments", "estimate_alignment", "align_panorama"]
+__all__ = ["Alignment", "line_segments", "estimate_alignment", "align_panorama", "boundaries_to_view"]
 
 #: Perspective views for the line detector: (yaw, pitch) in degrees, 90° field of view each.
 VIEWS = [(float(a), 0.0) for a in range(0, 360, 45)] + [(0.0, 90.0), (0.0, -90.0)]
 VIEW_FOV_DEG = 90.0
 Y = np.array([0.0, 1.0, 0.0])
+#: Fewer segments than this agreeing with the frame: the panorama is left as it is.
+MIN_INLIERS = 12
 
 
 @dataclass
@@ -217,9 +219,38 @@ def estimate_alignment(rgb: np.ndarray, down: np.ndarray | None = None, max_tilt
     inliers = 0
     if ok and source != "none":
         R, inliers = _refine(R, n, w, yaw_only=source == "pose")
+        if inliers < MIN_INLIERS:
+            notes.append(f"only {inliers} line segments agree with a Manhattan frame: panorama left as it is"
+                         + (" (levelled by the pose's gravity)" if source == "pose" else ""))
+            R = level_rotation(down) if source == "pose" else np.eye(3)
+            source = "pose" if source == "pose" else "none"
     return Alignment(_canonical_yaw(R), source, len(n), inliers, notes)
 
 
 def align_panorama(rgb: np.ndarray, alignment: Alignment, size: tuple[int, int] | None = None) -> np.ndarray:
     """The panorama in the room's frame (what HorizonNet expects)."""
     return rotate_equirect(rgb, alignment.rotation, size=size)
+
+
+def boundaries_to_view(bounds: np.ndarray, rotation: np.ndarray, width: int,
+                       values: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """Boundaries found in the aligned panorama ([K,W'] latitudes, one per aligned column) as the
+    view's own image sees them: [K,width] latitudes per view column. Each boundary point is turned
+    back into the view's frame (Rᵀ d) and its latitude interpolated at the view's column
+    longitudes (periodically). `values` ([W'], e.g. a confidence) follow the first row's points."""
+    b = np.asarray(bounds, dtype=np.float64)
+    R = np.asarray(rotation, dtype=np.float64)
+    phi_a = column_longitudes(b.shape[1])
+    phi_v = column_longitudes(width)
+    out = np.empty((b.shape[0], width))
+    mapped = None
+    for i, row in enumerate(b):
+        phi, theta = dirs_to_angles(angles_to_dirs(phi_a, row) @ R)  # rows: Rᵀ d
+        order = np.argsort(phi)
+        phi, theta = phi[order], theta[order]
+        xs = np.concatenate([phi[-1:] - 2 * np.pi, phi, phi[:1] + 2 * np.pi])
+        out[i] = np.interp(phi_v, xs, np.concatenate([theta[-1:], theta, theta[:1]]))
+        if i == 0 and values is not None:
+            v = np.asarray(values, dtype=np.float64)[order]
+            mapped = np.interp(phi_v, xs, np.concatenate([v[-1:], v, v[:1]]))
+    return out, mapped

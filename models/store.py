@@ -178,3 +178,12 @@ def cached_model(kind: str) -> KnownModel | None:
     models = known_models(kind)
     order = sorted(models, key=lambda n: (n != RECOMMENDED.get(kind), list(models).index(n)))
     return next((models[n] for n in order if is_present(models[n])), None)
+
+
+def known_name(path: Path) -> str | None:
+    """The known model whose cached ONNX file `path` is, else None."""
+    try:
+        resolved = Path(path).resolve()
+    except OSError:
+        return None
+    return next((e.name for e in known_models().values() if onnx_path(e).resolve() == resolved), None)

@@ -147,6 +147,8 @@ def print_status_table(engine) -> None:
         dur = f"{p.last_duration_s:.2f} s" if p.last_duration_s is not None else "—"
         table.add_row(name, f"[{colours[p.state]}]{p.state}[/]", dur, escape(p.reason))
     console.print(table)
+    for line in engine.hints():
+        console.print(escape(line), soft_wrap=True)
 
 
 # -- commands -----------------------------------------------------------------
@@ -187,6 +189,8 @@ def run(
     if target is not None and target not in engine.registry:
         raise PanoError(None, f"unknown stage {stage!r}; choose 'all' or one of {', '.join(engine.order)}")
     console.print(run_header(engine), soft_wrap=True)
+    for line in engine.hints():
+        console.print(escape(line), soft_wrap=True)
     results = engine.run(target=target, until=until, force=force, resume=resume, force_upstream=force_upstream)
     table = Table(title="run")
     for col in ("stage", "outcome", "seconds", "note"):

@@ -214,7 +214,17 @@ class Engine:
             raise describe_validation_error(f"{self.config_source} [{name}]", e, list(spec.params.model_fields)
                                             ) from None
         files = {k: self._param_file(name, k, v) for k, v in params if isinstance(v, Path)}
-        return params.model_copy(update=files) if files else params
+        params = params.model_copy(update=files) if files else params
+        return spec.resolve_params(self.scene, params) if spec.resolve_params else params
+
+    def hints(self) -> list[str]:
+        """The stages' one-line hints (what the scene lacks and the command that gets it)."""
+        out = []
+        for name in self.order:
+            spec = self.registry[name]
+            if spec.hint and (line := spec.hint(self.scene, self.params_for(name))):
+                out.append(line)
+        return out
 
     def _param_file(self, stage: str, field_name: str, value: Path) -> Path:
         """A file named by a parameter: as given (from the working folder), else relative to the

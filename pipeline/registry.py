@@ -38,7 +38,8 @@ def build_registry() -> dict[str, StageSpec]:
         ),
         StageSpec(
             "layout", layout.Params, layout.Output, layout.run, reads_views=layout.selected_views,
-            scene_inputs=("images", "layout"), skip_reason=layout.skip_reason,
+            scene_inputs=("images", "layout"), skip_reason=layout.skip_reason, run_reason=layout.run_reason,
+            resolve_params=layout.resolve_params, hint=layout.hint,
             code=("stages.layout", "layoutnet", "panogeom"),
             description="room layout per view (HorizonNet-compatible ONNX or supplied boundaries)",
         ),
