@@ -45,9 +45,10 @@ def build_registry() -> dict[str, StageSpec]:
         ),
         StageSpec(
             "depth", depth.Params, depth.Output, depth.run, reads_views=train_views,
-            scene_inputs=("images", "depth"), skip_reason=depth.skip_reason,
+            scene_inputs=("images", "depth"), skip_reason=depth.skip_reason, run_reason=depth.run_reason,
+            resolve_params=depth.resolve_params, hint=depth.hint,
             code=("stages.depth", "depthnet", "panogeom"),
-            description="depth per view (ONNX model or supplied files)",
+            description="depth per view (supplied files, or a depth model on cube faces of the panorama)",
         ),
         StageSpec(
             "union", union.Params, union.Output, union.run, reads_views=train_views,

@@ -27,7 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from pipeline.errors import PanoError, load_npy
 from pipeline.stage import StageContext
 from schemas.depth import DepthOutput, ViewDepth
-from schemas.scene import Scene
+from schemas.scene import Scene, View
 
 Output = DepthOutput
 
@@ -35,9 +35,13 @@ Output = DepthOutput
 class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    model: Path | None = Field(
+    model: str | Path | None = Field(
         default=None,
-        description="ONNX depth model; a relative path is tried from the working folder, then the scene.",
+        description="Depth model: a name from `pano-pipe models list` (depth-anything-v2-small; get it with "
+        "`pano-pipe models fetch NAME`), a Depth Anything V2 checkpoint .pth in the official layout "
+        "(exported to ONNX on first use) or an .onnx; a relative path is tried from the working folder, "
+        "then the scene folder. None: a known depth model in the model cache, for train views without "
+        "depth files when the scene will have a layout to align it to; 'none': depth files only.",
     )
     output: Literal["metric", "relative", "disparity"] | None = Field(
         default=None,
@@ -87,12 +91,75 @@ class Params(BaseModel):
         return {k: v for k in DepthContract.model_fields if (v := getattr(self, k)) is not None}
 
 
+def _get_model_hint() -> str:
+    from models.registry import RECOMMENDED
+
+    return f"get one: pano-pipe models fetch {RECOMMENDED['depth']}"
+
+
+def _views_without_files(scene: Scene) -> list[View]:
+    return [v for v in scene.manifest.train_views() if scene.depth_path(v) is None]
+
+
+def _layout_expected(scene: Scene, views: list[View]) -> bool:
+    """Whether `views` will have a layout to fix an affine depth model's scale and shift: layout
+    files for all of them, or a known layout model in the cache (what the layout stage then uses)."""
+    from models.store import cached_model
+
+    return all(scene.layout_path(v) is not None for v in views) or cached_model("layout") is not None
+
+
+def resolve_params(scene: Scene, params: Params) -> Params:
+    """`model` -> the ONNX file to run (models.resolve_model: a name, a .pth exported once, an .onnx).
+    None picks a known depth model from the user's cache for train views without depth files, when
+    a layout will be there to align its relative depth to (else align could not use it)."""
+    from models.store import cached_model, ensure_onnx, resolve_model
+
+    value = params.model
+    if value is None:
+        missing = _views_without_files(scene)
+        if not missing or not _layout_expected(scene, missing):
+            return params
+        entry = cached_model("depth")
+        return params.model_copy(update={"model": ensure_onnx(entry)}) if entry else params
+    if isinstance(value, str) and value.strip().lower() == "none":
+        return params.model_copy(update={"model": None})
+    return params.model_copy(update={"model": resolve_model(value, "depth", search=(scene.root,))})
+
+
 def skip_reason(scene: Scene, params: Params) -> str | None:
     if params.model:
         return None
     if any(scene.depth_path(v) is not None for v in scene.manifest.train_views()):
         return None
-    return "no depth files (depth/<view>.png or .npy) and no depth.model"
+    return f"no depth files (depth/<view>.png or .npy) and no depth model; {_get_model_hint()}"
+
+
+def run_reason(scene: Scene, params: Params) -> str:
+    missing = _views_without_files(scene)
+    if not missing:
+        return "depth files for every train view"
+    if params.model is None:
+        return f"{len(missing)} train view(s) without depth files get no depth ({_get_model_hint()})"
+    return f"model {_model_label(params.model)} for {len(missing)} train view(s) without depth files"
+
+
+def hint(scene: Scene, params: Params) -> str | None:
+    """One line for `status` and the run header when train views have no depth and no model will run."""
+    if params.model is not None:
+        return None
+    missing = _views_without_files(scene)
+    if not missing:
+        return None
+    return (f"depth: {len(missing)} train view(s) have no depth file and no depth model is set or cached; "
+            f"{_get_model_hint()}")
+
+
+def _model_label(path) -> str:
+    from models.store import known_name
+
+    name = known_name(Path(path))
+    return f"{name} ({path})" if name else str(path)
 
 
 # ----------------------------------------------------------------------------- pure helpers
@@ -151,8 +218,8 @@ def mask_invalid(values: np.ndarray, kind: str, near: float = 0.0, far: float = 
 def run(ctx: StageContext[Params]) -> DepthOutput:
     from panogeom.images import read_rgb
 
-    p = ctx.params
     scene = ctx.scene
+    p = resolve_params(scene, ctx.params)  # already resolved when the engine runs it: a no-op
     out = ctx.out_dir / "depth"
     out.mkdir(parents=True, exist_ok=True)
     model = None
@@ -195,7 +262,7 @@ def run(ctx: StageContext[Params]) -> DepthOutput:
         raise PanoError(scene.root, "no train view has depth (no depth files, no depth.model)")
     return DepthOutput(
         views=results,
-        model=str(p.model) if model is not None else None,
+        model=_model_label(p.model) if model is not None else None,
         network=model.description.get("architecture") if model is not None else None,
         contract=model.contract.model_dump(mode="json") if model is not None else None,
     )
