@@ -76,6 +76,27 @@ class DepthContract(BaseModel):
     )
 
 
+def write_metadata(onnx_path: str | Path, contract: dict, network: dict | None = None) -> None:
+    """Record a depth contract (DepthContract fields) and what the network is in an ONNX file's
+    metadata, so the depth stage runs it without settings."""
+    import json
+
+    import onnx
+
+    DepthContract(**contract)  # refuse a contract the stage could not read back
+    proto = onnx.load(str(onnx_path))
+    entries = {CONTRACT_METADATA_KEY: json.dumps(contract)}
+    if network is not None:
+        entries[MODEL_METADATA_KEY] = json.dumps(network)
+    kept = [e for e in proto.metadata_props if e.key not in entries]
+    del proto.metadata_props[:]
+    proto.metadata_props.extend(kept)
+    for key, value in entries.items():
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.save(proto, str(onnx_path))
+
+
 def _static(dim) -> int | None:
     return dim if isinstance(dim, int) and dim > 0 else None
 
