@@ -12,7 +12,9 @@ import typer
 def export_depth_model_command(
     checkpoint: Annotated[
         Path,
-        typer.Argument(help="Depth Anything V2 checkpoint as its authors publish it (depth_anything_v2_vits.pth)."),
+        typer.Argument(
+            help="Depth Anything V2 checkpoint as its authors publish it (depth_anything_v2_vits.pth)."
+        ),
     ],
     out: Annotated[Path, typer.Argument(help="ONNX file to write.")],
     opset: Annotated[int, typer.Option("--opset", help="ONNX opset (>= 17).")] = 17,

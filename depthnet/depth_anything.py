@@ -131,7 +131,7 @@ class Block(nn.Module):
 
 
 def _cubic_weights(t: torch.Tensor, a: float = -0.75) -> list[torch.Tensor]:
-    """Keys' cubic convolution weights of the four taps at offsets -1, 0, 1, 2 (torch's bicubic, A = -0.75)."""
+    """Keys' cubic convolution weights of the taps at offsets -1, 0, 1, 2 (torch's bicubic, A = -0.75)."""
 
     def near(x):  # |x| <= 1
         return ((a + 2) * x - (a + 3)) * x * x + 1
@@ -402,7 +402,7 @@ def export_module(
     tmp = out.with_name(out.name + ".partial")
     try:
         with torch.no_grad(), warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # the tracer's notes on traced sizes: they are meant to be dynamic
+            warnings.simplefilter("ignore")  # the tracer's notes on traced sizes: meant to be dynamic
             torch.onnx.export(
                 module,
                 (x,),

@@ -197,7 +197,7 @@ class OnnxDepthModel:
                 DepthContract(**recorded)
             except (ValueError, TypeError) as e:
                 msg = " ".join(str(e).split())[:200]
-                raise PanoError(self.path, f"unreadable depth contract in the model's metadata: {msg}") from None
+                raise PanoError(self.path, f"unreadable depth contract in the metadata: {msg}") from None
         return DepthContract(**{**recorded, **overrides})
 
     @property

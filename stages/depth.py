@@ -59,8 +59,9 @@ class Params(BaseModel):
     )
     max_height: int = Field(default=512, ge=8, description="Model input height cap when its size is dynamic.")
     projection: Literal["equirect", "cubemap"] | None = Field(
-        default=None, description="equirect: 360° model; cubemap: perspective model on six cube faces. None: "
-        "from the model's metadata, else equirect."
+        default=None,
+        description="equirect: 360° model; cubemap: perspective model on six cube faces. None: from the "
+        "model's metadata, else equirect."
     )
     face_size: int | None = Field(
         default=None, ge=8, description="Cube face side (px) for a model of dynamic size; None: from the "
@@ -226,7 +227,9 @@ def run(ctx: StageContext[Params]) -> DepthOutput:
     if p.model:
         from depthnet.runner import OnnxDepthModel
 
-        model = OnnxDepthModel(p.model, threads=p.threads, providers=p.providers, overrides=p.contract_overrides())
+        model = OnnxDepthModel(
+            p.model, threads=p.threads, providers=p.providers, overrides=p.contract_overrides()
+        )
 
     views = scene.manifest.train_views()
     results: list[ViewDepth] = []

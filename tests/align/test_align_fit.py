@@ -126,7 +126,9 @@ def test_disparity_scale_and_shift_recovered(sims, kit, tmp_path, noise, outlier
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_affine_inverse_depth_fit_per_view_recovers_scale_and_shift_within_1_percent(sims, kit, tmp_path, seed):
+def test_affine_inverse_depth_fit_per_view_recovers_scale_and_shift_within_1_percent(
+    sims, kit, tmp_path, seed
+):
     """One view at a time, as align fits a Depth Anything view: v = a/D + b (a known affine map in
     inverse depth) with 2 % noise and 5 % gross outliers, in a furnished room (furniture is a further
     outlier to the layout). The fit 1/D = s*v + t must give s = 1/a and t = -b/a."""
@@ -140,7 +142,10 @@ def test_affine_inverse_depth_fit_per_view_recovers_scale_and_shift_within_1_per
         fit = fit_scale(vals, maps[v.name][0], "disparity", seed=seed)
         s_err = abs(fit.scale * a - 1)
         t_err = abs(fit.shift + b / a) / np.median(1 / gt)  # relative to the view's typical inverse depth
-        print(f"per-view affine inverse depth a={a:.3f} b={b:.3f}: scale error {s_err:.3%}, shift error {t_err:.3%}")
+        print(
+            f"per-view affine inverse depth a={a:.3f} b={b:.3f}: "
+            f"scale error {s_err:.3%}, shift error {t_err:.3%}"
+        )
         assert s_err < 0.01 and t_err < 0.01
 
 

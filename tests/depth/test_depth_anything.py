@@ -111,7 +111,9 @@ def _official_pos_embed(pos: torch.Tensor, height: int, width: int) -> torch.Ten
     return torch.cat([pos[:, :1], grid.permute(0, 2, 3, 1).reshape(1, rows * cols, -1)], 1)
 
 
-@pytest.mark.parametrize("hw", [(518, 518), (518, 1036), (98, 140), (28, 28), (700, 700), (518, 532), (14, 28)])
+@pytest.mark.parametrize(
+    "hw", [(518, 518), (518, 1036), (98, 140), (28, 28), (700, 700), (518, 532), (14, 28)]
+)
 def test_position_embedding_equals_torch_bicubic_with_the_official_scale(hw):
     enc = DepthAnythingV2().pretrained
     with torch.no_grad():
@@ -128,7 +130,8 @@ def test_forward_shape_and_input_normalisation():
         out = model(normalize(rgb))
     assert out.shape == (2, 42, 70) and (out >= 0).all() and out.std() > 0.1
     x = normalize(torch.ones(1, 3, 1, 1))
-    assert np.allclose(x.flatten().numpy(), (1 - np.array([0.485, 0.456, 0.406])) / np.array([0.229, 0.224, 0.225]))
+    mean, std = np.array([0.485, 0.456, 0.406]), np.array([0.229, 0.224, 0.225])
+    assert np.allclose(x.flatten().numpy(), (1 - mean) / std)
 
 
 @pytest.fixture(scope="module")
@@ -203,9 +206,11 @@ def test_export_depth_model_command_reports_bad_input(tmp_path, capsys):
     from tests.clitools import invoke
 
     code, _, err = invoke(["export-depth-model", tmp_path / "none.pth", tmp_path / "x.onnx"], capsys)
-    assert code == 2 and err.startswith("error:") and "does not exist" in err and len(err.strip().splitlines()) == 1
+    assert code == 2 and err.startswith("error:") and "does not exist" in err
+    assert len(err.strip().splitlines()) == 1
     (tmp_path / "a.pth").write_bytes(b"junk")
-    code, _, err = invoke(["export-depth-model", tmp_path / "a.pth", tmp_path / "x.onnx", "--opset", "13"], capsys)
+    args = ["export-depth-model", tmp_path / "a.pth", tmp_path / "x.onnx", "--opset", "13"]
+    code, _, err = invoke(args, capsys)
     assert code == 2 and "opset 13 is too old" in err
 
 
