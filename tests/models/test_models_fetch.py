@@ -217,3 +217,42 @@ def test_run_all_uses_the_fetched_model_on_a_scene_without_layout_files(registry
     assert {v["source"] for v in art["views"]} == {"model"}
     assert all(v["alignment"] is not None for v in art["views"])
     assert (tmp_path / "R" / "train" / "artifact.json").is_file()
+
+
+def test_google_drive_and_hugging_face_go_through_their_clients(registry, tmp_path, monkeypatch):
+    """The built-in HorizonNet entry calls gdown with the authors' file id; a Hugging Face entry
+    calls hf_hub_download with repo and file name (the clients stubbed: no network here)."""
+    import gdown
+    import huggingface_hub
+
+    from models.download import fetch
+
+    cache, sha, _ = registry
+    standin = _save_standin(tmp_path / "standin.pth")
+    calls = []
+
+    def fake_gdown(id=None, output=None, quiet=False, **kw):
+        calls.append(("gdrive", id, Path(output).name))
+        Path(output).write_bytes(standin.read_bytes())
+        return output
+
+    def fake_hf(repo_id, filename, local_dir=None, **kw):
+        calls.append(("hf", repo_id, filename))
+        out = Path(local_dir) / filename
+        out.write_bytes(standin.read_bytes())
+        return str(out)
+
+    monkeypatch.setattr(gdown, "download", fake_gdown)
+    monkeypatch.setattr(huggingface_hub, "hf_hub_download", fake_hf)
+    got = fetch("horizonnet-zind", log=lambda m: None)
+    assert calls == [("gdrive", "1FrMdk7Z4_sTZOOW65Ek77WbjiDbV98uJ", "resnet50_rnn__zind.pth")]
+    assert got.checkpoint == cache / "resnet50_rnn__zind.pth" and got.onnx.is_file() and got.sha256 == sha
+
+    reg = Path(os.environ["PANO_PIPE_MODELS_REGISTRY"])
+    entries = yaml.safe_load(reg.read_text()) + [
+        {"name": "horizonnet-hf", "kind": "layout", "host": "huggingface", "source": "someone/horizonnet",
+         "filename": "hf.pth", "sha256": sha}]
+    reg.write_text(yaml.safe_dump(entries))
+    got = fetch("horizonnet-hf", log=lambda m: None)
+    assert calls[-1] == ("hf", "someone/horizonnet", "hf.pth") and got.onnx.is_file()
+    assert not [p for p in cache.iterdir() if p.name.startswith(".")]
