@@ -220,8 +220,9 @@ def layout_from_model(model, rgb: np.ndarray, camera_height: float, params: Para
     if params.align != "off":
         alignment = estimate_alignment(small, down=down if params.align == "auto" else None,
                                        max_tilt_deg=params.max_tilt_deg)
-        angle = np.degrees(np.arccos(np.clip((np.trace(alignment.rotation) - 1.0) / 2.0, -1.0, 1.0)))
-        if angle < 0.5 * 360.0 / 1024:  # under half a pixel of the model's input: resampling costs more
+        from scipy.spatial.transform import Rotation
+
+        if np.degrees(Rotation.from_matrix(alignment.rotation).magnitude()) < 0.5 * 360.0 / 1024:  # under half a pixel of the model's input: resampling costs more
             alignment.rotation = np.eye(3)
         else:
             small = rotate_equirect(small, alignment.rotation)

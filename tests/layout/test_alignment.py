@@ -40,7 +40,7 @@ ROTATIONS = [(20.0, 5.0, 30.0), (-35.0, 10.0, 120.0), (8.0, 2.0, 250.0), (41.0, 
 @pytest.fixture(scope="module")
 def simulated() -> np.ndarray:
     """A textured room from the simulator, camera level and square to the walls."""
-    simulate = pytest.importorskip("simulate")
+    pytest.importorskip("simulate")
     from simulate.geometry import Camera, build_world
     from simulate.render import render_view
 
@@ -48,7 +48,6 @@ def simulated() -> np.ndarray:
     world = build_world("cuboid", rng)
     x0, z0, x1, z1 = world.camera_regions[0][0]
     cam = Camera("v", "train", np.array([0.4 * x0 + 0.6 * x1, -1.5, 0.55 * z0 + 0.45 * z1]), 1.5, 0.0)
-    assert simulate is not None
     return render_view(world, [], cam, 512, {"texture"}, 1, rng, {}).image.astype(np.float32)
 
 
