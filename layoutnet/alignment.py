@@ -154,18 +154,13 @@ def _yaw_from_lines(n: np.ndarray, w: np.ndarray, down: np.ndarray) -> tuple[flo
     return yaw, True
 
 
-def _axes(R: np.ndarray) -> np.ndarray:
-    """The aligned frame's axes in the view frame, rows: x, y (down), z."""
-    return R  # rows of R are Rᵀ e_k
-
-
 def _refine(R: np.ndarray, n: np.ndarray, w: np.ndarray, yaw_only: bool) -> tuple[np.ndarray, int]:
     from scipy.optimize import least_squares
     from scipy.spatial.transform import Rotation
 
     tol = np.sin(np.radians(2.0))
     for _ in range(2):
-        dots = np.abs(n @ _axes(R).T)  # [N,3]
+        dots = np.abs(n @ R.T)  # [N,3]: the rows of R are the frame's axes in the view frame
         axis = np.argmin(dots, axis=1)
         m = dots[np.arange(len(n)), axis] < tol
         if m.sum() < 3:

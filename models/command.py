@@ -16,24 +16,26 @@ models_app = typer.Typer(
 def list_command() -> None:
     """Known models: kind, source, licence, size, SHA-256, and whether each is in the cache."""
     from rich.markup import escape
-    from rich.table import Table
 
     from models.registry import known_models
     from models.store import cache_dir, checkpoint_path, onnx_path, read_record
     from pipeline.console import console
 
-    table = Table(title=escape(f"models (cache: {cache_dir()})"), title_justify="left")
-    for col in ("name", "kind", "source", "licence", "size", "SHA-256", "present"):
-        table.add_column(col, overflow="fold")
+    console.print(escape(f"model cache: {cache_dir()}"), soft_wrap=True)
     for entry in known_models().values():
         pinned = read_record(entry).get("sha256")
-        sha = entry.sha256 or (f"{pinned} (pinned at fetch)" if pinned else "not published")
-        present = ("yes (ONNX)" if onnx_path(entry).is_file()
-                   else "checkpoint (exported on first use)" if checkpoint_path(entry).is_file() else "no")
-        size = f"{entry.size_mb:.0f} MB" if entry.size_mb else "?"
-        table.add_row(entry.name, entry.kind, escape(f"{entry.host_name}: {entry.url}"), escape(entry.licence),
-                      size, sha, present)
-    console.print(table)
+        sha = entry.sha256 or (f"{pinned} (not published; pinned at the first fetch)" if pinned
+                               else "not published (computed and pinned at the first fetch)")
+        present = ("yes" if onnx_path(entry).is_file()
+                   else "checkpoint only (exported on first use)" if checkpoint_path(entry).is_file() else "no")
+        size = f"{entry.size_mb:.0f} MB" if entry.size_mb else "size unknown"
+        lines = [f"[bold]{escape(entry.name)}[/]  {entry.kind}  {size}  present: {present}"]
+        if entry.description:
+            lines.append(f"  {escape(entry.description)}")
+        lines += [f"  source:  {escape(entry.host_name)} {escape(entry.url)}",
+                  f"  licence: {escape(entry.licence)}",
+                  f"  SHA-256: {sha}"]
+        console.print("\n".join(lines), soft_wrap=True)
     console.print("get one: pano-pipe models fetch NAME; use it: --set layout.model=NAME (depth.model for depth)")
 
 

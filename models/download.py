@@ -115,5 +115,6 @@ def fetch(name: str, force: bool = False, log=print) -> Fetched:
         export(ckpt, onnx, entry.exporter)
         exported = True
     write_record(entry, digest)
-    log(f"ready: {onnx} (use it with --set {entry.kind}.model={entry.name})")
+    auto = " (scenes without layout files use it by default)" if entry.kind == "layout" else ""
+    log(f"ready: {onnx}; select it with --set {entry.kind}.model={entry.name}{auto}")
     return Fetched(entry, ckpt, onnx, digest, downloaded, exported)

@@ -66,27 +66,27 @@ _HORIZONNET_CODE = "HorizonNet code MIT"
 BUILTIN: tuple[KnownModel, ...] = (
     # Google Drive ids as linked from HorizonNet's README.md, README_ZInD.md and README_MP3D.md
     # (github.com/sunset1995/HorizonNet). The four files share one architecture (ResNet-50 + LSTM);
-    # ~312 MB is the size reported for the mp3d file.
+    # ~327 MB (312 MiB): the size of that architecture saved as HorizonNet saves it (docs/layout.md).
     KnownModel(
         "horizonnet-zind", "layout", "gdrive", "1FrMdk7Z4_sTZOOW65Ek77WbjiDbV98uJ", "resnet50_rnn__zind.pth",
-        f"{_HORIZONNET_CODE}; weights trained on ZInD (Zillow terms: non-commercial use)", 312.0, None,
+        f"{_HORIZONNET_CODE}; weights trained on ZInD (Zillow terms: non-commercial use)", 327.0, None,
         DEFAULT_EXPORTERS["layout"], "HorizonNet, ZInD (20k real homes; general room shapes)",
     ),
     KnownModel(
         "horizonnet-mp3d", "layout", "gdrive", "1uEEhPVw6VbjwW3lO4btb8zExV8NqojTB", "resnet50_rnn__mp3d.pth",
         f"{_HORIZONNET_CODE}; weights trained on MatterportLayout (Matterport3D terms: non-commercial "
-        "academic use)", 312.0, None, DEFAULT_EXPORTERS["layout"],
+        "academic use)", 327.0, None, DEFAULT_EXPORTERS["layout"],
         "HorizonNet, MatterportLayout (the 360-GS paper's data; general room shapes)",
     ),
     KnownModel(
         "horizonnet-st3d", "layout", "gdrive", "16v1nhL9C2VZX-qQpikCsS6LiMJn3q6gO", "resnet50_rnn__st3d.pth",
-        f"{_HORIZONNET_CODE}; weights trained on Structured3D (see its terms of use)", 312.0, None,
+        f"{_HORIZONNET_CODE}; weights trained on Structured3D (see its terms of use)", 327.0, None,
         DEFAULT_EXPORTERS["layout"], "HorizonNet, Structured3D (synthetic rooms)",
     ),
     KnownModel(
         "horizonnet-panos2d3d", "layout", "gdrive", "1aieMd61b-3BoOeTRv2pKu9yTk5zEinn0",
         "resnet50_rnn__panos2d3d.pth",
-        f"{_HORIZONNET_CODE}; weights trained on PanoContext + Stanford 2D-3D (see their terms)", 312.0, None,
+        f"{_HORIZONNET_CODE}; weights trained on PanoContext + Stanford 2D-3D (see their terms)", 327.0, None,
         DEFAULT_EXPORTERS["layout"], "HorizonNet, PanoContext/Stanford2D3D (cuboid rooms)",
     ),
     KnownModel(

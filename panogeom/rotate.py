@@ -11,7 +11,7 @@ import numpy as np
 
 from panogeom.equirect import angles_to_pixel, dirs_to_angles, ray_directions
 
-__all__ = ["rotate_equirect", "yaw_matrix", "level_rotation", "yaw_tilt_deg", "rotation_between"]
+__all__ = ["rotate_equirect", "yaw_matrix", "level_rotation", "yaw_tilt_deg"]
 
 
 def yaw_matrix(yaw: float) -> np.ndarray:
@@ -20,22 +20,13 @@ def yaw_matrix(yaw: float) -> np.ndarray:
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
-def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The smallest rotation taking unit direction a to unit direction b (Rodrigues)."""
-    a = np.asarray(a, dtype=np.float64) / np.linalg.norm(a)
-    b = np.asarray(b, dtype=np.float64) / np.linalg.norm(b)
-    v, c = np.cross(a, b), float(a @ b)
-    if c < -1.0 + 1e-12:  # opposite: half a turn about any axis orthogonal to a
-        axis = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 0.0, 1.0])
-        axis /= np.linalg.norm(axis)
-        return 2.0 * np.outer(axis, axis) - np.eye(3)
-    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-    return np.eye(3) + vx + vx @ vx / (1.0 + c)
-
-
 def level_rotation(down: np.ndarray) -> np.ndarray:
     """The smallest rotation taking a camera frame's gravity direction `down` to +y (level), no yaw."""
-    return rotation_between(down, [0.0, 1.0, 0.0])
+    from scipy.spatial.transform import Rotation
+
+    down = np.asarray(down, dtype=np.float64)
+    # one vector pair: scipy returns the minimal rotation between them
+    return Rotation.align_vectors([[0.0, 1.0, 0.0]], [down / np.linalg.norm(down)])[0].as_matrix()
 
 
 def yaw_tilt_deg(rotation: np.ndarray) -> tuple[float, float]:

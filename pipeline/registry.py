@@ -41,7 +41,7 @@ def build_registry() -> dict[str, StageSpec]:
             scene_inputs=("images", "layout"), skip_reason=layout.skip_reason, run_reason=layout.run_reason,
             resolve_params=layout.resolve_params, hint=layout.hint,
             code=("stages.layout", "layoutnet", "panogeom"),
-            description="room layout per view (HorizonNet-compatible ONNX or supplied boundaries)",
+            description="room layout per view (supplied boundaries, or a HorizonNet model on the aligned panorama)",
         ),
         StageSpec(
             "depth", depth.Params, depth.Output, depth.run, reads_views=train_views,

@@ -220,7 +220,12 @@ def layout_from_model(model, rgb: np.ndarray, camera_height: float, params: Para
     if params.align != "off":
         alignment = estimate_alignment(small, down=down if params.align == "auto" else None,
                                        max_tilt_deg=params.max_tilt_deg)
-        small = rotate_equirect(small, alignment.rotation)
+        from scipy.spatial.transform import Rotation
+
+        if np.degrees(Rotation.from_matrix(alignment.rotation).magnitude()) < 0.5 * 360.0 / 1024:  # under half a pixel of the model's input: resampling costs more
+            alignment.rotation = np.eye(3)
+        else:
+            small = rotate_equirect(small, alignment.rotation)
     room, raw = room_from_model(model, small, camera_height, params)
     fitted_1024 = pp.polygon_to_boundaries(room.polygon, room.camera_height, room.ceiling_distance, 1024)
     conf = pp.column_confidence(raw, fitted_1024)
