@@ -35,7 +35,7 @@ from pipeline.errors import PanoError
 PATCH = 14
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-MAX_DIFF = 1e-4  # onnxruntime vs torch, max absolute difference on the export check
+MAX_DIFF = 1e-4  # onnxruntime vs torch on the export check, as `onnx_vs_torch` measures it
 # What the depth stage reads from an exported model's metadata (depthnet.runner.DepthContract fields).
 CONTRACT = {
     "output": "disparity",
@@ -156,7 +156,7 @@ def bicubic_matrix(n_out, n_in: int, offset: float, like: torch.Tensor) -> torch
     i0 = torch.floor(src)
     weights = _cubic_weights(src - i0)
     cols = torch.arange(n_in, dtype=like.dtype, device=like.device)
-    m = torch.zeros_like(dst)[:, None] * cols[None]
+    m = torch.zeros_like(dst)[:, None] * cols[None]  # zeros [n_out, n_in], traceable
     for k, w in enumerate(weights):
         tap = (i0 + (k - 1)).clamp(0, n_in - 1)
         m = m + w[:, None] * (tap[:, None] == cols[None]).to(like.dtype)
@@ -195,14 +195,17 @@ class DinoVisionTransformer(nn.Module):
         rows, cols = height // PATCH, width // PATCH
         my = bicubic_matrix(rows, self.grid, 0.1, pos)
         mx = bicubic_matrix(cols, self.grid, 0.1, pos)
-        # The official code returns the stored grid when the image is square with as many
-        # patches as the grid: blend towards it with a 0/1 flag, so no branch enters the graph.
-        eye_y = (torch.arange(rows, device=pos.device)[:, None] == torch.arange(self.grid, device=pos.device))
-        eye_x = (torch.arange(cols, device=pos.device)[:, None] == torch.arange(self.grid, device=pos.device))
-        same = ((my.new_ones(my.shape).sum() == self.grid * self.grid) & (my.new_ones(()) * height == width))
-        same = same.to(pos.dtype)
-        my = my + same * (eye_y.to(pos.dtype) - my)
-        mx = mx + same * (eye_x.to(pos.dtype) - mx)
+        # The official code returns the stored grid when the image is square with as many patches
+        # as the grid. A 0/1 flag computed from the (possibly traced) sizes blends towards the
+        # identity, so no Python branch freezes one case into the exported graph.
+        grid_idx = torch.arange(self.grid, device=pos.device)
+        eye_y = (torch.arange(rows, device=pos.device)[:, None] == grid_idx).to(pos.dtype)
+        eye_x = (torch.arange(cols, device=pos.device)[:, None] == grid_idx).to(pos.dtype)
+        n_rows = my.new_ones(my.shape[:1]).sum()
+        square = my.new_ones(()) * height == width
+        native = ((n_rows == self.grid) & square).to(pos.dtype)
+        my = my + native * (eye_y - my)
+        mx = mx + native * (eye_x - mx)
         patch_pos = torch.einsum("ia,abc,jb->ijc", my, grid, mx).reshape(1, -1, grid.shape[-1])
         return torch.cat([cls_pos, patch_pos], dim=1)
 

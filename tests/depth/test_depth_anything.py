@@ -192,6 +192,28 @@ def test_onnx_export_matches_torch_at_any_size(exported):
         assert onnx_vs_torch(module, onnx_path, x) <= MAX_DIFF
 
 
+def test_export_at_and_off_the_native_grid(tmp_path):
+    """At the training size (here a 3 x 3 grid, 42 px) the stored embedding is used as is; off it,
+    interpolated. The exported graph must take both paths from the input size alone."""
+    import depthnet.depth_anything as da
+
+    cfg = da.Config("tiny", embed_dim=32, depth=4, num_heads=2, features=8, out_channels=(4, 8, 16, 32),
+                    layers=(0, 1, 2, 3), pretrain_size=42)
+    torch.manual_seed(2)
+    model = DepthAnythingV2(cfg).eval()
+    with torch.no_grad():
+        model.depth_head.scratch.output_conv2[2].weight.mul_(40.0)  # outputs of a few units
+        model.depth_head.scratch.output_conv2[2].bias.fill_(5.0)
+        assert torch.equal(model.pretrained.position_embedding(42, 42), model.pretrained.pos_embed)
+        assert not torch.allclose(model.pretrained.position_embedding(42, 56)[:, :10],
+                                  model.pretrained.pos_embed[:, :10])
+    out = tmp_path / "tiny.onnx"
+    export_module(model, out, check_size=(28, 56))
+    module = _Exported(model)
+    for shape in [(1, 3, 42, 42), (1, 3, 42, 56), (1, 3, 56, 56), (1, 3, 28, 28)]:
+        assert onnx_vs_torch(module, out, normalize(torch.rand(*shape))) <= 1e-5
+
+
 def test_export_refuses_a_model_it_cannot_reproduce(tmp_path, monkeypatch):
     import depthnet.depth_anything as da
 
