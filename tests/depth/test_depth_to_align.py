@@ -93,8 +93,11 @@ def test_run_uses_a_cached_depth_model_and_fits_affine_inverse_depth_per_view(
     dk.export(dk.PerspectiveFace(32, 100.0, "disparity"), cached, (1, 3, 32, 32))
     write_metadata(cached, {"output": "disparity", "projection": "cubemap", "face_fov_deg": 100.0},
                    {"architecture": "stand-in"})
+    off = Engine(scene, tmp_path / "run", build_registry(), {**config, "depth": {"model": "none"}}).plan()
+    assert off["depth"].state == "skipped"  # `none`: files only, the cached model is not used
     engine = Engine(scene, tmp_path / "run", build_registry(), config)
     assert not any(h.startswith("depth:") for h in engine.hints())
+    assert "depth-anything-v2-small" in engine.plan()["depth"].reason  # says which model will run
     outcomes = {r.name: r.outcome for r in engine.run(target="align")}
     assert outcomes["depth"] == "ran" and outcomes["align"] == "ran"
     out = load_artifact(tmp_path / "run" / "align", align.Output).data
