@@ -1,18 +1,22 @@
-"""depth: one depth map per train view, from a supplied file or an ONNX model.
+"""depth: one depth map per train view, from a supplied file or a depth model.
 
 Sources, in order of preference (`prefer` swaps the first two):
 1. a supplied file, `scene.depth_path(view)`: depth/<view>.png (uint16
    millimetres, 0 = invalid) or .npy (float metres), distance along the ray,
    any 2:1 size;
-2. an ONNX model (`model`), run under the contract in depthnet/runner.py:
-   a 360° model on the panorama, or a perspective model on six cube faces;
+2. a model (`model`: a known name such as depth-anything-v2-small, a .pth
+   exported on first use, or an .onnx; unset: a known model in the user's
+   cache when a layout will be there to align it), run under the contract in
+   depthnet/runner.py (settings, else the model's metadata): a 360° model on
+   the panorama, or a perspective model on six cube faces;
 3. none: the view gets no depth (a warning); with no file and no model for
    any train view the stage is skipped.
 
 Each view's map is written as depth/<view>.npy, float32 [H,W], NaN where
 invalid: 0, NaN, Inf, negative, or (metric) nearer than `near_limit` / beyond
-`far_limit`. Model outputs keep their kind (metric, relative, disparity);
-`align` fixes the scale. Test views are never read (they are for evaluation).
+`far_limit`. Model outputs keep their kind (metric distance, affine depth,
+affine inverse depth), recorded in the artifact; `align` fits scale (and
+shift). Test views are never read (they are for evaluation).
 """
 
 from __future__ import annotations
