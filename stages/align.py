@@ -484,6 +484,16 @@ def run(ctx: StageContext[Params]) -> AlignOutput:
     if layout_in is not None and not any(v.layout is not None for v in views):
         ctx.warn("no depth view has a layout: the depth is used as it is (scale 1)")
 
+    # Relative depth without a layout cannot be placed: leave such views out while others remain
+    # (a view the layout stage could not read), refuse below when none would.
+    unplaced = [v for v in views if v.kind != "metric" and v.layout is None]
+    if unplaced and len(unplaced) < len(views):
+        ctx.warn(
+            f"view(s) {', '.join(v.name for v in unplaced)}: {DEPTH_MODELS[unplaced[0].kind]} without a "
+            "layout to fix its scale and shift; left out of the cloud"
+        )
+        views = [v for v in views if v not in unplaced]
+
     # Fit groups: all metric views share one scale (the paper's single global
     # factor); a relative or disparity model normalises each image on its own
     # (Depth Anything), so by default each such view gets its own scale and shift.
