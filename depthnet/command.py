@@ -25,6 +25,9 @@ def export_depth_model_command(
     from pipeline.console import console
 
     t0 = time.perf_counter()
+    if checkpoint.is_file():  # a missing file is reported by export_onnx, as one line
+        console.print(f"exporting {checkpoint} to {out} (load, trace, check against torch: under a minute on "
+                      "a CPU)", soft_wrap=True)
     diff = export_onnx(checkpoint, out, opset=opset)
     console.print(
         f"wrote {out} (opset {opset}); onnxruntime vs torch max difference {diff:.2e} (< {MAX_DIFF:g}) "
