@@ -112,7 +112,13 @@ def fetch(name: str, force: bool = False, log=print) -> Fetched:
     exported = False
     if force or not onnx.is_file() or read_record(entry).get("sha256") != digest:
         log(f"exporting to ONNX with {entry.exporter}")
-        export(ckpt, onnx, entry.exporter)
+        try:
+            export(ckpt, onnx, entry.exporter)
+        except PanoError as e:
+            if downloaded:  # not the model (an error page, a truncated file): do not keep it
+                ckpt.unlink(missing_ok=True)
+                raise PanoError(e.where, f"{e.problem} (the download was removed)") from None
+            raise
         exported = True
     write_record(entry, digest)
     auto = " (scenes without layout files use it by default)" if entry.kind == "layout" else ""
