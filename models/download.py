@@ -19,6 +19,7 @@ from models.store import (
     checkpoint_path,
     expected_sha256,
     export,
+    load_exporter,
     onnx_path,
     read_record,
     record_path,
@@ -74,6 +75,7 @@ def fetch(name: str, force: bool = False, log=print) -> Fetched:
     """Make `name` ready to use: checkpoint in the cache (downloaded unless present), hash checked,
     ONNX exported once. `force` downloads and exports again (and re-pins an unpublished hash)."""
     entry = get_model(name)
+    load_exporter(entry.exporter)  # before a download it could not use
     ckpt, onnx = checkpoint_path(entry), onnx_path(entry)
     cache = cache_dir()
     cache.mkdir(parents=True, exist_ok=True)

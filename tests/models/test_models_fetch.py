@@ -274,3 +274,16 @@ def test_a_download_that_is_not_a_checkpoint_is_not_kept(registry, served):
     with pytest.raises(PanoError, match="not a readable PyTorch checkpoint.*the download was removed"):
         fetch("horizonnet-page", log=lambda m: None)
     assert not (cache / "page.pth").exists() and not (cache / "horizonnet-page.onnx").exists()
+
+
+def test_a_missing_exporter_is_said_before_any_download(registry):
+    from models.download import fetch
+
+    cache, _, server = registry
+    reg = Path(os.environ["PANO_PIPE_MODELS_REGISTRY"])
+    reg.write_text(yaml.safe_dump(yaml.safe_load(reg.read_text()) + [
+        {"name": "horizonnet-noexport", "kind": "layout", "host": "url", "source": f"{server.url}/standin.pth",
+         "filename": "noexport.pth", "exporter": "layoutnet.nowhere:export"}]))
+    with pytest.raises(PanoError, match="model exporter not available"):
+        fetch("horizonnet-noexport", log=lambda m: None)
+    assert server.requests == [] and not (cache / "noexport.pth").exists()
