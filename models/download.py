@@ -61,6 +61,7 @@ def _download(entry: KnownModel, folder: Path, want: str | None) -> Path:
         return Path(hf_hub_download(entry.source, entry.filename, local_dir=folder))
     import pooch
 
+    pooch.get_logger().setLevel("WARNING")  # its advice to pin the hash is ours to give
     try:
         return Path(pooch.retrieve(entry.source, known_hash=f"sha256:{want}" if want else None,
                                    fname=entry.filename, path=folder, progressbar=not quiet))
