@@ -28,7 +28,8 @@ import numpy as np
 from panogeom.equirect import angles_to_dirs, angles_to_pixel, column_longitudes, dirs_to_angles
 from panogeom.rotate import level_rotation, rotate_equirect, yaw_matrix, yaw_tilt_deg
 
-__all__ = ["Alignment", "line_segments", "estimate_alignment", "align_panorama", "boundaries_to_view"]
+__all__ = ["Alignment", "line_segments", "estimate_alignment", "align_panorama", "boundaries_to_view",
+           "room_in_view"]
 
 #: Perspective views for the line detector: (yaw, pitch) in degrees, 90° field of view each.
 VIEWS = [(float(a), 0.0) for a in range(0, 360, 45)] + [(0.0, 90.0), (0.0, -90.0)]
@@ -36,6 +37,9 @@ VIEW_FOV_DEG = 90.0
 Y = np.array([0.0, 1.0, 0.0])
 #: Fewer segments than this agreeing with the frame: the panorama is left as it is.
 MIN_INLIERS = 12
+#: A rotation under half a pixel of HorizonNet's 1024-wide input is not applied: resampling would
+#: cost more sharpness than the turn gains.
+MIN_APPLIED_DEG = 0.5 * 360.0 / 1024
 
 
 @dataclass
@@ -55,6 +59,13 @@ class Alignment:
     @property
     def tilt_deg(self) -> float:
         return yaw_tilt_deg(self.rotation)[1]
+
+    @property
+    def angle_deg(self) -> float:
+        """The whole rotation's angle."""
+        from scipy.spatial.transform import Rotation
+
+        return float(np.degrees(Rotation.from_matrix(self.rotation).magnitude()))
 
 
 def _view_rotation(yaw_deg: float, pitch_deg: float) -> np.ndarray:
@@ -249,3 +260,24 @@ def boundaries_to_view(bounds: np.ndarray, rotation: np.ndarray, width: int,
             v = np.asarray(values, dtype=np.float64)[order]
             mapped = np.interp(phi_v, xs, np.concatenate([v[-1:], v, v[:1]]))
     return out, mapped
+
+
+def room_in_view(room, raw: np.ndarray, rotation: np.ndarray, width: int):
+    """A room fitted on the aligned panorama, turned back into the view's own frame:
+    (room with the floor corners' (x, z) in the view's frame, its boundaries [2,width] as the
+    view's image sees them, the model's raw boundaries [2,W'] likewise, the per-column
+    confidence [width]). Heights stay distances along gravity."""
+    from layoutnet import postprocess as pp
+
+    R = np.asarray(rotation, dtype=np.float64)
+    h, c = room.camera_height, room.ceiling_distance
+    fitted_raw_width = pp.polygon_to_boundaries(room.polygon, h, c, raw.shape[1])
+    conf_aligned = pp.column_confidence(raw, fitted_raw_width)
+    dense = pp.polygon_to_boundaries(room.polygon, h, c, max(2048, 2 * width))
+    fitted, _ = boundaries_to_view(dense, R, width)
+    _, conf = boundaries_to_view(fitted_raw_width, R, width, values=conf_aligned)
+    raw_view, _ = boundaries_to_view(raw, R, raw.shape[1])
+    corners = np.stack([room.polygon[:, 0], np.full(len(room.polygon), h), room.polygon[:, 1]], 1)
+    turned = corners @ R  # Rᵀ p per row: the floor corners in the view's frame
+    view_room = pp.RoomLayout(turned[:, [0, 2]], h, c, room.method, list(room.notes))
+    return view_room, fitted, raw_view, conf

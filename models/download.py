@@ -19,6 +19,7 @@ from models.store import (
     checkpoint_path,
     expected_sha256,
     export,
+    load_exporter,
     onnx_path,
     read_record,
     record_path,
@@ -60,6 +61,7 @@ def _download(entry: KnownModel, folder: Path, want: str | None) -> Path:
         return Path(hf_hub_download(entry.source, entry.filename, local_dir=folder))
     import pooch
 
+    pooch.get_logger().setLevel("WARNING")  # its advice to pin the hash is ours to give
     try:
         return Path(pooch.retrieve(entry.source, known_hash=f"sha256:{want}" if want else None,
                                    fname=entry.filename, path=folder, progressbar=not quiet))
@@ -74,6 +76,7 @@ def fetch(name: str, force: bool = False, log=print) -> Fetched:
     """Make `name` ready to use: checkpoint in the cache (downloaded unless present), hash checked,
     ONNX exported once. `force` downloads and exports again (and re-pins an unpublished hash)."""
     entry = get_model(name)
+    load_exporter(entry.exporter)  # before a download it could not use
     ckpt, onnx = checkpoint_path(entry), onnx_path(entry)
     cache = cache_dir()
     cache.mkdir(parents=True, exist_ok=True)
@@ -112,7 +115,13 @@ def fetch(name: str, force: bool = False, log=print) -> Fetched:
     exported = False
     if force or not onnx.is_file() or read_record(entry).get("sha256") != digest:
         log(f"exporting to ONNX with {entry.exporter}")
-        export(ckpt, onnx, entry.exporter)
+        try:
+            export(ckpt, onnx, entry.exporter)
+        except PanoError as e:
+            if downloaded:  # not the model (an error page, a truncated file): do not keep it
+                ckpt.unlink(missing_ok=True)
+                raise PanoError(e.where, f"{e.problem} (the download was removed)") from None
+            raise
         exported = True
     write_record(entry, digest)
     auto = " (scenes without layout files use it by default)" if entry.kind == "layout" else ""

@@ -118,6 +118,9 @@ def ensure_onnx(entry: KnownModel) -> Path:
     if not ckpt.is_file():
         raise PanoError(ckpt, missing_message(entry))
     digest = verify(entry, ckpt)
+    from pipeline.console import console
+
+    console.print(f"exporting {entry.name} to ONNX (once; kept at {onnx})", soft_wrap=True)
     export(ckpt, onnx, entry.exporter)
     write_record(entry, digest)
     return onnx

@@ -142,6 +142,7 @@ def _model_label(path: Path) -> str:
     name = known_name(Path(path))
     return f"{name} ({path})" if name else str(path)
 
+
 def selected_views(scene: Scene, params: Params) -> list[View]:
     return [v for v in scene.views if params.splits == "all" or v.split == "train"]
 
@@ -209,10 +210,10 @@ class ModelLayout:
 
 def layout_from_model(model, rgb: np.ndarray, camera_height: float, params: Params, width: int,
                       down: np.ndarray | None = None) -> ModelLayout:
-    """The model on the panorama turned into its room's frame (params.align), the room turned back:
-    floor corners into the view's frame, boundaries into the view's image. `down`: gravity in the
-    view's frame when the pose gives it (align=auto)."""
-    from layoutnet.alignment import boundaries_to_view, estimate_alignment
+    """The model on the panorama turned into its room's frame (params.align), the room turned back
+    into the view's frame (layoutnet.alignment.room_in_view). `down`: gravity in the view's frame
+    when the pose gives it (align=auto)."""
+    from layoutnet.alignment import MIN_APPLIED_DEG, estimate_alignment, room_in_view
     from panogeom.rotate import rotate_equirect
 
     small = cv2.resize(rgb, (1024, 512), interpolation=cv2.INTER_AREA if rgb.shape[0] > 512 else cv2.INTER_LINEAR)
@@ -220,29 +221,20 @@ def layout_from_model(model, rgb: np.ndarray, camera_height: float, params: Para
     if params.align != "off":
         alignment = estimate_alignment(small, down=down if params.align == "auto" else None,
                                        max_tilt_deg=params.max_tilt_deg)
-        from scipy.spatial.transform import Rotation
-
-        if np.degrees(Rotation.from_matrix(alignment.rotation).magnitude()) < 0.5 * 360.0 / 1024:  # under half a pixel of the model's input: resampling costs more
+        if alignment.angle_deg < MIN_APPLIED_DEG:
             alignment.rotation = np.eye(3)
-        else:
-            small = rotate_equirect(small, alignment.rotation)
-    room, raw = room_from_model(model, small, camera_height, params)
-    fitted_1024 = pp.polygon_to_boundaries(room.polygon, room.camera_height, room.ceiling_distance, 1024)
-    conf = pp.column_confidence(raw, fitted_1024)
-    if alignment is None:
+    if alignment is None or alignment.angle_deg == 0.0:
+        room, raw = room_from_model(model, small, camera_height, params)
         fitted = pp.polygon_to_boundaries(room.polygon, room.camera_height, room.ceiling_distance, width)
+        conf = pp.column_confidence(raw, pp.polygon_to_boundaries(
+            room.polygon, room.camera_height, room.ceiling_distance, raw.shape[1]))
         conf = pp.resample_boundaries(conf[None].astype(np.float64), width)[0]
-        return ModelLayout(room, fitted, raw, conf, None)
-    R = alignment.rotation
-    dense = pp.polygon_to_boundaries(room.polygon, room.camera_height, room.ceiling_distance, max(2048, 2 * width))
-    fitted, _ = boundaries_to_view(dense, R, width)
-    _, conf = boundaries_to_view(fitted_1024, R, width, values=conf)
-    raw_view, _ = boundaries_to_view(raw, R, raw.shape[1])
-    corners = np.stack([room.polygon[:, 0], np.full(len(room.polygon), room.camera_height), room.polygon[:, 1]], 1)
-    turned = corners @ R  # Rᵀ p per row: the floor corners in the view's frame
-    room_view = pp.RoomLayout(turned[:, [0, 2]], room.camera_height, room.ceiling_distance, room.method,
-                              room.notes + alignment.notes)
-    return ModelLayout(room_view, fitted, raw_view, conf, alignment)
+        room.notes += alignment.notes if alignment else []
+        return ModelLayout(room, fitted, raw, conf, alignment)
+    room, raw = room_from_model(model, rotate_equirect(small, alignment.rotation), camera_height, params)
+    view_room, fitted, raw_view, conf = room_in_view(room, raw, alignment.rotation, width)
+    view_room.notes += alignment.notes
+    return ModelLayout(view_room, fitted, raw_view, conf, alignment)
 
 
 def _alignment_record(a: Alignment | None) -> LayoutAlignment | None:

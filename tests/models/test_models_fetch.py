@@ -41,6 +41,7 @@ def _free_port() -> int:
 
 class _Server:
     def __init__(self, folder: Path):
+        self.folder = folder
         self.requests: list[str] = []
         outer = self
 
@@ -203,6 +204,8 @@ def test_run_all_uses_the_fetched_model_on_a_scene_without_layout_files(registry
     assert not (scene / "layout").exists()
     code, out, _ = invoke(["status", scene, "--out", tmp_path / "R0"], capsys)
     assert code == 0 and "pano-pipe models fetch horizonnet-zind" in " ".join(out.split())
+    code, out, _ = invoke(["run", "layout", scene, "--out", tmp_path / "R0"], capsys)  # the run header says it
+    assert code == 0 and "have no layout file and no layout model" in " ".join(out.split())
 
     assert invoke(["models", "fetch", "horizonnet-standin"], capsys)[0] == 0
     code, out, _ = invoke(["status", scene, "--out", tmp_path / "R"], capsys)
@@ -257,3 +260,31 @@ def test_google_drive_and_hugging_face_go_through_their_clients(registry, tmp_pa
     got = fetch("horizonnet-hf", log=lambda m: None)
     assert calls[-1] == ("hf", "someone/horizonnet", "hf.pth") and got.onnx.is_file()
     assert not [p for p in cache.iterdir() if p.name.startswith(".")]
+
+
+def test_a_download_that_is_not_a_checkpoint_is_not_kept(registry, served):
+    from models.download import fetch
+
+    cache, _, server = registry
+    page = server.folder / "quota.html"
+    page.write_text("<html>Too many users have viewed or downloaded this file recently</html>")
+    reg = Path(os.environ["PANO_PIPE_MODELS_REGISTRY"])
+    reg.write_text(yaml.safe_dump(yaml.safe_load(reg.read_text()) + [
+        {"name": "horizonnet-page", "kind": "layout", "host": "url", "source": f"{server.url}/quota.html",
+         "filename": "page.pth"}]))
+    with pytest.raises(PanoError, match="not a readable PyTorch checkpoint.*the download was removed"):
+        fetch("horizonnet-page", log=lambda m: None)
+    assert not (cache / "page.pth").exists() and not (cache / "horizonnet-page.onnx").exists()
+
+
+def test_a_missing_exporter_is_said_before_any_download(registry):
+    from models.download import fetch
+
+    cache, _, server = registry
+    reg = Path(os.environ["PANO_PIPE_MODELS_REGISTRY"])
+    reg.write_text(yaml.safe_dump(yaml.safe_load(reg.read_text()) + [
+        {"name": "horizonnet-noexport", "kind": "layout", "host": "url", "source": f"{server.url}/standin.pth",
+         "filename": "noexport.pth", "exporter": "layoutnet.nowhere:export"}]))
+    with pytest.raises(PanoError, match="model exporter not available"):
+        fetch("horizonnet-noexport", log=lambda m: None)
+    assert server.requests == [] and not (cache / "noexport.pth").exists()
