@@ -49,7 +49,7 @@ class Params(BaseModel):
     surfaces: list[Literal["wall", "floor", "ceiling"]] = Field(
         default=["wall", "floor", "ceiling"], min_length=1, description="Which surfaces to sample."
     )
-    seed: int = Field(default=0, ge=0, le=2**32 - 1)
+    seed: int = Field(default=0, ge=0, le=2**32 - 1, description="Random seed of the jitter (same seed, same cloud).")
     visibility_eps: float = Field(
         default=1e-3,
         gt=0,
