@@ -261,7 +261,7 @@ def run(ctx: StageContext) -> EvaluateOutput:
             names = {k: f"{k}/{v.name}.png" for k in ("gt", "renders", "errors", "depth")}
             write_rgb(out / names["gt"], gt)
             write_rgb(out / names["renders"], r.image)
-            write_rgb(out / names["errors"], error_rgb(M.error_map(r.image, gt)))
+            write_rgb(out / names["errors"], error_rgb(M.error_map(r.image, gt), valid=mask))  # masked: grey
             write_rgb(out / names["depth"], depth_rgb(r.depth))
             np.save(out / "depth" / f"{v.name}.npy", r.depth.astype(np.float32))
             rows.append(row)
