@@ -672,6 +672,8 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
         doc.p("No files of the run yet (model, videos, configuration, run log).", "warn")
     links = [href for href, _ in link_items]
 
+    not_applied = settings_without_effect(run_dir, scene)  # named where each setting is shown
+
     # -- metrics
     ev = read_artifact(run_dir, "evaluate")
     from evaluation.visuals import DEPTH_ERROR_UNITS, DEPTH_UNITS, ERROR_UNITS, ERROR_VMAX
@@ -726,7 +728,9 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
             ["training seconds", _fmt(td.get("train_seconds"))],
             ["resolution (H×W)", "×".join(str(x) for x in td.get("resolution", []))],
             ["init", _fmt(td.get("init"))], ["projection", _fmt(td.get("projection"))],
-            ["layout regularisation", _fmt(td.get("layout_reg"))], ["λ layout", _fmt(td.get("lambda_layout"))],
+            ["layout regularisation", _fmt(td.get("layout_reg")) + (
+                f" (not applied: {not_applied[('train', 'layout_reg')]})" if ("train", "layout_reg") in not_applied
+                else "")], ["λ layout", _fmt(td.get("lambda_layout"))],
             ["preset", _fmt(td.get("preset"))], ["backend", _fmt(td.get("backend"))],
             ["final train PSNR", _fmt(td.get("final_train_psnr"))],
         ]
@@ -793,7 +797,7 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
             sections.append(section_id)
 
     # -- configuration: non-default values first, the full table folded; settings without effect named
-    if settings_section(doc, params, settings_without_effect(run_dir, scene)):
+    if settings_section(doc, params, not_applied):
         sections.append("config")
 
     # -- durations

@@ -188,7 +188,7 @@ def depth_alignment_section(doc, ctx: SectionContext) -> str | None:
               + (f", shift {_fmt(d.get('shift'))}" if d.get("shift") else "")
               + (f"; {100 * share:.1f}% of the labelled pixels agree with the layout" if isinstance(share, float)
                  else "")
-              + (f"; median residual {100 * d['residual_m']:.1f} cm on them" if isinstance(d.get("residual_m"), float)
+              + (f"; median residual {100 * d['residual_m']:.2g} cm on them" if isinstance(d.get("residual_m"), float)
                  else "") + ".")
     fits = [f for f in d.get("fits", []) if isinstance(f, dict)]
     if fits:
@@ -198,7 +198,7 @@ def depth_alignment_section(doc, ctx: SectionContext) -> str | None:
             rows.append([", ".join(map(str, f.get("views", []))), str(f.get("kind", "")), _fmt(f.get("scale")),
                          _fmt(f.get("layout_fit_scale")), _fmt(f.get("icp_factor")),
                          f"{100 * share:.1f}%" if isinstance(share, (int, float)) else "—",
-                         f"{100 * f['residual_m']:.1f}" if isinstance(f.get("residual_m"), (int, float)) else "—",
+                         f"{100 * f['residual_m']:.2g}" if isinstance(f.get("residual_m"), (int, float)) else "—",
                          _fmt(f.get("icp_fitness")), _fmt(f.get("num_pixels"))])
         doc.table(["views", "depth kind", "scale", "layout-fit scale", "ICP factor", "inliers",
                    "residual (cm)", "ICP fitness", "pixels fitted"], rows)
@@ -288,16 +288,18 @@ def settings_without_effect(run_dir: Path, scene=None) -> dict[tuple[str, str], 
             for k in ("crop_fov", "crop_elevations", "crop_counts", "crop_size"):
                 if k in p and p[k] != _default("train", k):
                     out[("train", k)] = f"used by projection 'crops' only; this model is '{projection}'"
+        # schedules: only settings the user changed are named (a preset's own schedule is by design)
         iterations = td.get("iterations")
         start = _resolved(p, "densify_from", PRESETS)
         if isinstance(iterations, int) and isinstance(start, int) and start >= iterations:
             for k in ("densify_from", "densify_until", "densify_every", "densify_grad_threshold", "percent_dense",
                       "max_gaussians"):
-                if k in p:
+                if k in p and not _same(p[k], _default("train", k)):
                     out[("train", k)] = (f"densification never ran: it starts at iteration {start}, training "
                                          f"stopped at {iterations}")
         reset = _resolved(p, "opacity_reset_every", PRESETS)
-        if isinstance(iterations, int) and isinstance(reset, int) and reset >= iterations and "opacity_reset_every" in p:
+        if isinstance(iterations, int) and isinstance(reset, int) and 0 < iterations <= reset \
+                and p.get("opacity_reset_every") is not None:
             out[("train", "opacity_reset_every")] = (f"no opacity reset happened: the first is due at iteration "
                                                      f"{reset}, training stopped at {iterations}")
     al = _artifact(run_dir, "align")

@@ -92,6 +92,7 @@ def test_settings_without_effect_are_named_with_their_reason(bare_run, tmp_path)
     md = build_report(run, scene, out_dir=tmp_path / "rep").markdown.read_text()
     assert "Settings that had no effect" in md and "| train.layout_reg | true | no layout cloud" in md
     assert re.search(r"\| train\.layout_reg \| true \|[^|]*\| not applied: no layout cloud", md)
+    assert "| layout regularisation | True (not applied: no layout cloud" in md  # the training summary too
 
 
 def test_layout_regularisation_counts_as_applied_with_a_layout(full_run):
