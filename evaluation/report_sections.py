@@ -217,12 +217,13 @@ STAGE_SECTIONS: list[Callable] = [layout_section, depth_alignment_section]
 # ----------------------------------------------------------------------------- links
 
 
-#: Files `pano-pipe export` writes into RUN/export/, by suffix, and what they are.
+#: Files `pano-pipe export` writes into RUN/export/, by suffix: what they are, and their axes as far as
+#: the file itself fixes them (a name with _yup was written with --y-up; docs/export.md).
 EXPORT_KINDS = {
-    ".ply": "3D Gaussians, standard 3DGS PLY",
-    ".splat": "3D Gaussians, antimatter15 .splat",
-    ".spz": "3D Gaussians, Niantic .spz",
-    ".glb": "room mesh, glTF binary",
+    ".ply": ("3D Gaussians, standard 3DGS PLY", "pano-pipe axes, y down"),
+    ".splat": ("3D Gaussians, antimatter15 .splat", "pano-pipe axes, y down"),
+    ".spz": ("3D Gaussians, Niantic .spz", "RUB, as the format defines"),
+    ".glb": ("room mesh, glTF binary", "y up unless exported with --glb-axes pano-pipe"),
 }
 
 
@@ -231,13 +232,14 @@ def export_links(run_dir: Path) -> list[tuple[Path, str]]:
     folder = Path(run_dir) / "export"
     out = []
     for path in sorted(folder.glob("*")) if folder.is_dir() else []:
-        if path.name.startswith(".") or not path.is_file() or path.suffix.lower() not in EXPORT_KINDS:
+        suffix = path.suffix.lower()
+        if path.name.startswith(".") or not path.is_file() or suffix not in EXPORT_KINDS:
             continue
-        what = EXPORT_KINDS[path.suffix.lower()]
-        if path.stem.startswith("mesh"):
-            what = "room mesh, PLY" if path.suffix.lower() == ".ply" else what
-        axes = "y up" if "_yup" in path.stem or (path.suffix.lower() == ".glb" and "_ydown" not in path.stem) \
-            else "pano-pipe axes, y down"
+        what, axes = EXPORT_KINDS[suffix]
+        if path.stem.startswith("mesh") and suffix == ".ply":
+            what = "room mesh, PLY"
+        if path.stem.endswith("_yup") and suffix in (".ply", ".splat"):
+            axes = "y up"
         out.append((path, f"export {path.name} ({what}; {axes})"))
     return out
 

@@ -665,10 +665,10 @@ def _usage_message(e) -> str:
 
     extra = re.search(r"unexpected extra arguments? ?(?:\(s\))? \((.*)\)", message)
     extra = extra.group(1) if extra else ""
-    if extra.lower() in _FLAG_VALUES:
-        args = sys.argv[1:]
-        at = args.index(extra) if extra in args else -1
-        flag = args[at - 1] if at > 0 and args[at - 1].startswith("--") else "an on/off option"
+    args = sys.argv[1:]
+    at = args.index(extra) if extra.lower() in _FLAG_VALUES and extra in args else -1
+    if at > 0 and args[at - 1].startswith("--"):  # the value follows a flag
+        flag = args[at - 1]
         return (f"{message}: {flag} is a flag and takes no value: write {flag} to turn it on, "
                 f"leave it out to keep it off")
     return message

@@ -151,7 +151,9 @@ def test_exports_and_videos_are_linked_when_they_exist(full_run, tmp_path):
     exported = sorted(h.split("/")[-1] for h in after.links if "/export/" in h)
     assert exported == ["mesh.glb", "point_cloud.ply", "point_cloud.spz"]
     assert any(h.endswith("render/flythrough-train-pano.mp4") for h in after.links)
-    assert "y up" in after.markdown.read_text()  # the glb's axes are said
+    md = after.markdown.read_text()
+    assert "mesh.glb (room mesh, glTF binary; y up unless exported with --glb-axes pano-pipe)" in md
+    assert "point_cloud.ply (3D Gaussians, standard 3DGS PLY; pano-pipe axes, y down)" in md
 
 
 def test_stage_file_stays_inside_the_stage_folder(tmp_path):

@@ -85,6 +85,11 @@ def test_a_flag_given_a_value_says_it_is_a_flag(tmp_path, capsys, value):
     assert "--y-up is a flag" in err and "write --y-up to turn it on" in err
 
 
+def test_a_stray_argument_that_follows_no_flag_gets_no_flag_hint(tmp_path, capsys):
+    code, out, err = invoke(["export", tmp_path / "nothing", "true"], capsys)
+    assert code == 2 and "unexpected extra argument" in err and "is a flag" not in err
+
+
 def test_flags_parse_as_flags(tmp_path, capsys):
     # the flag itself is accepted: the command gets as far as the missing run folder
     code, out, err = invoke(["export", tmp_path / "nothing", "--y-up", "--overwrite"], capsys)
