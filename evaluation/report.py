@@ -703,8 +703,8 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
         doc.h(2, "Views: ground truth / render / error / depth", "views")
         sections.append("views")
         doc.p("Every false-colour map has its colour bar, with units and range, under it. Error maps: "
-              f"{ERROR_UNITS}, inferno, fixed scale 0 … {ERROR_VMAX:g} so they compare across views and runs; "
-              "grey = pixels the metrics leave out (the view's mask, the nadir cap). "
+              f"{ERROR_UNITS}, inferno, fixed scale 0 … {ERROR_VMAX:g} so they compare across views and "
+              "runs; grey = pixels the metrics leave out (the view's mask, the nadir cap). "
               f"Depth: {DEPTH_UNITS}, turbo, 0 … the rendered depth's 99th percentile (ground-truth depth on "
               "the same scale); black = nothing rendered / no depth. Depth error: "
               f"{DEPTH_ERROR_UNITS}, inferno, 0 … its 99th percentile; grey = no ground truth.", "note")
@@ -723,14 +723,15 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
         doc.p("No training artifact: run `pano-pipe run train SCENE`.", "warn")
     else:
         td = tr["data"]
+        reg_note = not_applied.get(("train", "layout_reg"))
         summary = [
             ["iterations", _fmt(td.get("iterations"))], ["Gaussians", _fmt(td.get("num_gaussians"))],
             ["training seconds", _fmt(td.get("train_seconds"))],
             ["resolution (H×W)", "×".join(str(x) for x in td.get("resolution", []))],
             ["init", _fmt(td.get("init"))], ["projection", _fmt(td.get("projection"))],
-            ["layout regularisation", _fmt(td.get("layout_reg")) + (
-                f" (not applied: {not_applied[('train', 'layout_reg')]})" if ("train", "layout_reg") in not_applied
-                else "")], ["λ layout", _fmt(td.get("lambda_layout"))],
+            ["layout regularisation",
+             _fmt(td.get("layout_reg")) + (f" (not applied: {reg_note})" if reg_note else "")],
+            ["λ layout", _fmt(td.get("lambda_layout"))],
             ["preset", _fmt(td.get("preset"))], ["backend", _fmt(td.get("backend"))],
             ["final train PSNR", _fmt(td.get("final_train_psnr"))],
         ]

@@ -88,7 +88,8 @@ def plot_layout_view(image: np.ndarray, boundaries: np.ndarray, polygon: np.ndar
     plt = _plt()
     fig, (ax_i, ax_p) = plt.subplots(1, 2, figsize=(12, 3.6), gridspec_kw={"width_ratios": [2.6, 1]})
     h = image.shape[0]
-    ax_i.imshow(np.clip(image, 0, 1), extent=(-0.5, image.shape[1] - 0.5, h - 0.5, -0.5), interpolation="bilinear")
+    ax_i.imshow(np.clip(image, 0, 1), extent=(-0.5, image.shape[1] - 0.5, h - 0.5, -0.5),
+                interpolation="bilinear")
     cols, rows = boundary_rows(boundaries, h)
     cols = cols * image.shape[1] / (2 * h)  # the image may not be exactly 2:1
     for row, colour, label in ((rows[0], CEILING_COLOUR, "ceiling"), (rows[1], FLOOR_COLOUR, "floor")):
@@ -124,7 +125,8 @@ def layout_section(doc, ctx: SectionContext) -> str | None:
     art = _artifact(ctx.run_dir, "layout")
     if art is None:
         return None
-    views = [v for v in art["data"].get("views", []) if isinstance(v, dict) and v.get("split", "train") == "train"]
+    views = [v for v in art["data"].get("views", [])
+             if isinstance(v, dict) and v.get("split", "train") == "train"]
     doc.h(2, "Layout on the training panoramas", "layout")
     scene_views = {v.name: v for v in ctx.scene.views} if ctx.scene is not None else {}
     if not scene_views:
@@ -183,22 +185,22 @@ def depth_alignment_section(doc, ctx: SectionContext) -> str | None:
         doc.p("The depth was not aligned to a layout (no layout in this run): it is used at its own "
               f"scale ({_fmt(d.get('scale'))}).", "warn")
     else:
-        share = d.get("inlier_share")
+        share, residual = d.get("inlier_share"), d.get("residual_m")
         doc.p(f"Depth scaled by {_fmt(d.get('scale'))}"
               + (f", shift {_fmt(d.get('shift'))}" if d.get("shift") else "")
-              + (f"; {100 * share:.1f}% of the labelled pixels agree with the layout" if isinstance(share, float)
-                 else "")
-              + (f"; median residual {100 * d['residual_m']:.2g} cm on them" if isinstance(d.get("residual_m"), float)
-                 else "") + ".")
+              + (f"; {100 * share:.1f}% of the labelled pixels agree with the layout"
+                 if isinstance(share, float) else "")
+              + (f"; median residual {100 * residual:.2g} cm on them" if isinstance(residual, float) else "")
+              + ".")
     fits = [f for f in d.get("fits", []) if isinstance(f, dict)]
     if fits:
         rows = []
         for f in fits:
-            share = f.get("inlier_share")
-            rows.append([", ".join(map(str, f.get("views", []))), str(f.get("kind", "")), _fmt(f.get("scale")),
-                         _fmt(f.get("layout_fit_scale")), _fmt(f.get("icp_factor")),
+            share, residual = f.get("inlier_share"), f.get("residual_m")
+            rows.append([", ".join(map(str, f.get("views", []))), str(f.get("kind", "")),
+                         _fmt(f.get("scale")), _fmt(f.get("layout_fit_scale")), _fmt(f.get("icp_factor")),
                          f"{100 * share:.1f}%" if isinstance(share, (int, float)) else "—",
-                         f"{100 * f['residual_m']:.2g}" if isinstance(f.get("residual_m"), (int, float)) else "—",
+                         f"{100 * residual:.2g}" if isinstance(residual, (int, float)) else "—",
                          _fmt(f.get("icp_fitness")), _fmt(f.get("num_pixels"))])
         doc.table(["views", "depth kind", "scale", "layout-fit scale", "ICP factor", "inliers",
                    "residual (cm)", "ICP fitness", "pixels fitted"], rows)
@@ -294,16 +296,16 @@ def settings_without_effect(run_dir: Path, scene=None) -> dict[tuple[str, str], 
         iterations = td.get("iterations")
         start = _resolved(p, "densify_from", PRESETS)
         if isinstance(iterations, int) and isinstance(start, int) and start >= iterations:
-            for k in ("densify_from", "densify_until", "densify_every", "densify_grad_threshold", "percent_dense",
-                      "max_gaussians"):
+            for k in ("densify_from", "densify_until", "densify_every", "densify_grad_threshold",
+                      "percent_dense", "max_gaussians"):
                 if k in p and not _same(p[k], _default("train", k)):
                     out[("train", k)] = (f"densification never ran: it starts at iteration {start}, training "
                                          f"stopped at {iterations}")
         reset = _resolved(p, "opacity_reset_every", PRESETS)
         if isinstance(iterations, int) and isinstance(reset, int) and 0 < iterations <= reset \
                 and p.get("opacity_reset_every") is not None:
-            out[("train", "opacity_reset_every")] = (f"no opacity reset happened: the first is due at iteration "
-                                                     f"{reset}, training stopped at {iterations}")
+            out[("train", "opacity_reset_every")] = (f"no opacity reset happened: the first is due at "
+                                                     f"iteration {reset}, training stopped at {iterations}")
     al = _artifact(run_dir, "align")
     if al is not None:
         p = (al.get("meta") or {}).get("params") or {}
@@ -319,8 +321,10 @@ def settings_without_effect(run_dir: Path, scene=None) -> dict[tuple[str, str], 
                 if k in p and p[k] != _default("align", k):
                     out[("align", k)] = "icp is off"
         kinds = {f.get("kind") for f in d.get("fits", []) if isinstance(f, dict)}
-        if kinds and kinds <= {"metric"} and "affine_fit" in p and p["affine_fit"] != _default("align", "affine_fit"):
-            out[("align", "affine_fit")] = "every depth map is metric: there is no scale and shift per view to fit"
+        if kinds and kinds <= {"metric"} and "affine_fit" in p \
+                and p["affine_fit"] != _default("align", "affine_fit"):
+            out[("align", "affine_fit")] = ("every depth map is metric: there is no scale and shift per view "
+                                            "to fit")
     dp = _artifact(run_dir, "depth")
     if dp is not None:
         p = (dp.get("meta") or {}).get("params") or {}
@@ -373,7 +377,8 @@ def settings_section(doc, params: dict[str, dict], not_applied: dict[tuple[str, 
     if not_applied:
         doc.h(3, "Settings that had no effect")
         doc.table(["parameter", "value", "why it had no effect"],
-                  [[f"{st}.{k}", _value_text(params.get(st, {}).get(k)), why] for (st, k), why in not_applied.items()])
+                  [[f"{st}.{k}", _value_text(params.get(st, {}).get(k)), why]
+                   for (st, k), why in not_applied.items()])
     changed, default = [], []
     for st, p in params.items():
         for k, v in flatten_params(p) or [("(none recorded)", "")]:
@@ -388,7 +393,8 @@ def settings_section(doc, params: dict[str, dict], not_applied: dict[tuple[str, 
     header = ["parameter", "value", "default", "note"]
     if changed:
         doc.table(header, changed)
-    doc.details(f"all {len(changed) + len(default)} parameters (defaults included)", header, changed + default)
+    doc.details(f"all {len(changed) + len(default)} parameters (defaults included)", header,
+                changed + default)
     return "config"
 
 

@@ -166,11 +166,13 @@ def export_command(
     mesh_depth: Annotated[int, typer.Option("--mesh-depth", min=5, max=12,
                                             help="mesh: screened Poisson octree depth.")] = 8,
     mesh_max_hole: Annotated[float, typer.Option(
-        "--mesh-max-hole", min=0.0, help="mesh: close every hole at most this many metres across (the diagonal "
-                                         "of its boundary's box) with a flat patch; 0 leaves holes open.")] = 4.0,
-    glb_axes: Annotated[GlbAxes, typer.Option("--glb-axes", help="mesh: axes of the .glb: y-up (glTF's, so "
-                                              "glTF viewers show the room upright) or pano-pipe (y down, as the "
-                                              "run and the .ply).", case_sensitive=False)] = GlbAxes.y_up,
+        "--mesh-max-hole", min=0.0,
+        help="mesh: close every hole at most this many metres across (the diagonal of its boundary's box) "
+             "with a flat patch; 0 leaves holes open.")] = 4.0,
+    glb_axes: Annotated[GlbAxes, typer.Option(
+        "--glb-axes", case_sensitive=False,
+        help="mesh: axes of the .glb: y-up (glTF's, so glTF viewers show the room upright) or pano-pipe "
+             "(y down, as the run and the .ply).")] = GlbAxes.y_up,
 ) -> None:
     """Export a run's trained Gaussians (.ply / .splat / .spz) or a coloured mesh of the room."""
     from export.fileio import check_writable

@@ -160,7 +160,8 @@ def select_stages(registry: dict[str, StageSpec], target: str | None = None, unt
     if stop is None:
         return order
     if stop not in registry:
-        raise PanoError(None, f"unknown stage {stop!r}{did_you_mean(stop, order)}; stages are {', '.join(order)}")
+        raise PanoError(None, f"unknown stage {stop!r}{did_you_mean(stop, order)}; "
+                              f"stages are {', '.join(order)}")
     wanted = ancestors(registry, stop) | {stop}
     return [n for n in order if n in wanted]
 
@@ -201,7 +202,8 @@ class Engine:
         unknown = set(self.config) - set(registry)
         if unknown:
             hints = "".join(did_you_mean(u, self.order) for u in sorted(unknown))
-            raise PanoError(config_source, f"unknown stage(s) {sorted(unknown)}{hints}; stages are {self.order}")
+            raise PanoError(config_source,
+                            f"unknown stage(s) {sorted(unknown)}{hints}; stages are {self.order}")
         self._fingerprints: dict[str, str] = {}
         self._file_hashes: dict[Path, str] = {}
 

@@ -43,7 +43,8 @@ class Params(BaseModel):
         default="metric", description="What the model outputs."
     )
     normalization: Literal["unit", "imagenet"] = Field(
-        default="unit", description="Model input: unit = RGB in [0, 1]; imagenet = (x - mean) / std after [0, 1].")
+        default="unit",
+        description="Model input: unit = RGB in [0, 1]; imagenet = (x - mean) / std after [0, 1].")
     input_size: tuple[int, int] | None = Field(default=None, description="(H, W) fed to the model.")
     multiple_of: int = Field(
         default=1, ge=1, description="Input sides a multiple of this (14: Depth Anything)."
@@ -52,12 +53,15 @@ class Params(BaseModel):
     projection: Literal["equirect", "cubemap"] = Field(
         default="equirect", description="equirect: 360° model; cubemap: perspective model on six cube faces."
     )
-    face_size: int = Field(default=256, ge=8, description="cubemap: face side (px) when the model's input size is dynamic.")
+    face_size: int = Field(
+        default=256, ge=8, description="cubemap: face side (px) when the model's input size is dynamic.")
     face_fov_deg: float = Field(
         default=100.0, ge=90.0, lt=170.0,
-        description="cubemap: field of view of a face (degrees); above 90 neighbouring faces overlap and are blended.")
+        description="cubemap: field of view of a face (degrees); above 90 neighbouring faces overlap and "
+                    "are blended.")
     perspective_axis: Literal["z", "ray"] = Field(
-        default="z", description="cubemap: the model's depth is along the optical axis (z, most models) or the ray.")
+        default="z",
+        description="cubemap: the model's depth is along the optical axis (z, most models) or the ray.")
     prefer: Literal["file", "model"] = Field(
         default="file", description="Which source wins when a view has both."
     )

@@ -47,7 +47,8 @@ class Params(BaseModel):
     )
     backend: str | None = Field(default=None, description="Splatting backend (None: the renderer's default).")
     device: Literal["auto", "cpu", "cuda"] = Field(
-        default="auto", description="Where the test views are rendered: auto = CUDA when available, else the CPU.")
+        default="auto",
+        description="Where the test views are rendered: auto = CUDA when available, else the CPU.")
     threads: int | None = Field(default=None, ge=1, description="torch threads while rendering (None: unchanged).")
     lpips: bool = Field(default=True, description="Compute LPIPS when weights are found.")
     lpips_net: Literal["alex", "vgg"] = Field(

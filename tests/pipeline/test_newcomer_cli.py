@@ -37,7 +37,8 @@ def test_bare_run_says_what_it_takes_with_an_example(capsys):
     assert "pano-pipe run all" in err and "train" in err and "--help" in err
 
 
-@pytest.mark.parametrize("typo, meant", [("train.iteratons", "iterations"), ("train.lr_opactiy", "lr_opacity")])
+@pytest.mark.parametrize("typo, meant", [("train.iteratons", "iterations"),
+                                         ("train.lr_opactiy", "lr_opacity")])
 def test_a_misspelt_parameter_suggests_the_closest(scene, tmp_path, capsys, typo, meant):
     code, out, err = invoke(["status", scene, "--out", tmp_path / "R", "--set", f"{typo}=3"], capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1

@@ -333,10 +333,14 @@ def test_look_along_room_faces_the_far_end_of_a_long_room():
     # a 10 m x 3 m corridor (x from -1 to 9, z from -1.5 to 1.5), walls sampled densely, camera near x = 0
     n = 4000
     xs = rng.uniform(-1, 9, n)
+    m = n // 4
+
+    def end_wall(x: float) -> np.ndarray:
+        return np.stack([np.full(m, x), rng.uniform(-1, 1, m), rng.uniform(-1.5, 1.5, m)], 1)
+
     walls = np.concatenate([np.stack([xs, rng.uniform(-1, 1, n), np.full(n, -1.5)], 1),
                             np.stack([xs, rng.uniform(-1, 1, n), np.full(n, 1.5)], 1),
-                            np.stack([np.full(n // 4, -1.0), rng.uniform(-1, 1, n // 4), rng.uniform(-1.5, 1.5, n // 4)], 1),
-                            np.stack([np.full(n // 4, 9.0), rng.uniform(-1, 1, n // 4), rng.uniform(-1.5, 1.5, n // 4)], 1)])
+                            end_wall(-1.0), end_wall(9.0)])
     d = look_along_room(np.zeros(3), walls)
     assert d[1] == 0 and np.linalg.norm(d) == pytest.approx(1.0)
     assert d[0] > 0.97  # along +x, down the corridor
