@@ -11,6 +11,7 @@ Every file an artifact names is looked up only inside that stage's folder (`stag
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from collections.abc import Callable
@@ -285,12 +286,12 @@ def settings_without_effect(run_dir: Path, scene=None) -> dict[tuple[str, str], 
                     "from, so it only trades off against the model's own colours")
         else:
             for k in ("lambda_appearance", "lr_appearance"):
-                if k in p and p[k] != _default("train", k):
+                if k in p and not _same(p[k], _default("train", k)):
                     out[("train", k)] = "appearance is off"
         projection = td.get("projection", p.get("projection"))
         if projection != "crops":
             for k in ("crop_fov", "crop_elevations", "crop_counts", "crop_size"):
-                if k in p and p[k] != _default("train", k):
+                if k in p and not _same(p[k], _default("train", k)):
                     out[("train", k)] = f"used by projection 'crops' only; this model is '{projection}'"
         # schedules: only settings the user changed are named (a preset's own schedule is by design)
         iterations = td.get("iterations")
@@ -314,15 +315,15 @@ def settings_without_effect(run_dir: Path, scene=None) -> dict[tuple[str, str], 
             why = "no layout to align the depth to (the depth kept its own scale)"
             for k in ("inlier_threshold", "min_inlier_share", "labels", "ransac_iterations", "icp",
                       "icp_max_distance", "icp_iterations", "icp_max_points", "icp_max_change"):
-                if k in p and p[k] != _default("align", k):
+                if k in p and not _same(p[k], _default("align", k)):
                     out[("align", k)] = why
         elif p.get("icp") is False:
             for k in ("icp_max_distance", "icp_iterations", "icp_max_points", "icp_max_change"):
-                if k in p and p[k] != _default("align", k):
+                if k in p and not _same(p[k], _default("align", k)):
                     out[("align", k)] = "icp is off"
         kinds = {f.get("kind") for f in d.get("fits", []) if isinstance(f, dict)}
         if kinds and kinds <= {"metric"} and "affine_fit" in p \
-                and p["affine_fit"] != _default("align", "affine_fit"):
+                and not _same(p["affine_fit"], _default("align", "affine_fit")):
             out[("align", "affine_fit")] = ("every depth map is metric: there is no scale and shift per view "
                                             "to fit")
     dp = _artifact(run_dir, "depth")
@@ -330,7 +331,7 @@ def settings_without_effect(run_dir: Path, scene=None) -> dict[tuple[str, str], 
         p = (dp.get("meta") or {}).get("params") or {}
         if p.get("projection", "equirect") != "cubemap":
             for k in ("face_size", "face_fov_deg", "perspective_axis"):
-                if k in p and p[k] != _default("depth", k):
+                if k in p and not _same(p[k], _default("depth", k)):
                     out[("depth", k)] = "used by projection 'cubemap' only"
     ev = _artifact(run_dir, "evaluate")
     if ev is not None:
@@ -338,21 +339,31 @@ def settings_without_effect(run_dir: Path, scene=None) -> dict[tuple[str, str], 
         if not ev["data"].get("lpips_available"):
             why = f"no LPIPS computed ({ev['data'].get('lpips_reason') or 'unavailable'})"
             for k in ("lpips_net", "lpips_weights"):
-                if k in p and p[k] != _default("evaluate", k):
+                if k in p and not _same(p[k], _default("evaluate", k)):
                     out[("evaluate", k)] = why
     return out
 
 
-def _default(stage: str, key: str):
-    """The stage parameter's default (None when unknown)."""
-    try:
-        from pipeline.registry import build_registry
+#: What _default returns for a parameter no stage declares (a custom stage, a renamed parameter).
+UNKNOWN = object()
 
-        field = build_registry()[stage].params.model_fields[key]
-    except (KeyError, ImportError):
-        return None
-    value = field.get_default(call_default_factory=True)
-    return list(value) if isinstance(value, tuple) else value
+
+@functools.lru_cache(maxsize=1)
+def _registry_defaults() -> dict[str, dict]:
+    from pipeline.registry import build_registry
+
+    out: dict[str, dict] = {}
+    for name, spec in build_registry().items():
+        for key, field in spec.params.model_fields.items():
+            if not field.is_required():
+                value = field.get_default(call_default_factory=True)
+                out.setdefault(name, {})[key] = list(value) if isinstance(value, tuple) else value
+    return out
+
+
+def _default(stage: str, key: str):
+    """The stage parameter's default (UNKNOWN when no stage declares it)."""
+    return _registry_defaults().get(stage, {}).get(key, UNKNOWN)
 
 
 def _train_panoramas(run_dir: Path, scene, td: dict) -> int | None:
@@ -384,10 +395,10 @@ def settings_section(doc, params: dict[str, dict], not_applied: dict[tuple[str, 
         for k, v in flatten_params(p) or [("(none recorded)", "")]:
             top = k.split(".")[0]
             note = ("not applied: " + not_applied[(st, top)]) if (st, top) in not_applied else ""
-            d = _default(st, top) if top in p else None
-            is_default = top in p and _same(p[top], d)
-            (default if is_default else changed).append([f"{st}.{k}", v, "" if is_default else _value_text(d),
-                                                          note])
+            d = _default(st, top) if top in p else UNKNOWN
+            is_default = d is not UNKNOWN and _same(p[top], d)
+            shown = "" if is_default else ("—" if d is UNKNOWN else _value_text(d))
+            (default if is_default else changed).append([f"{st}.{k}", v, shown, note])
     doc.p(f"{len(changed)} parameter{'s' if len(changed) != 1 else ''} set away from the default, "
           f"{len(default)} at the default; the same as YAML in config.yaml beside this report.")
     header = ["parameter", "value", "default", "note"]
@@ -399,6 +410,8 @@ def settings_section(doc, params: dict[str, dict], not_applied: dict[tuple[str, 
 
 
 def _same(a, b) -> bool:
+    if a is UNKNOWN or b is UNKNOWN:
+        return False
     a = list(a) if isinstance(a, tuple) else a
     b = list(b) if isinstance(b, tuple) else b
     if isinstance(a, float) and isinstance(b, (int, float)) and not isinstance(b, bool):
