@@ -63,10 +63,11 @@ class Params(BaseModel):
         default=["wall", "floor", "ceiling"], min_length=1, description="Layout surfaces the fit uses."
     )
     max_fit_pixels: int = Field(default=200_000, ge=100, description="Random subsample for the robust fit.")
-    ransac_iterations: int = Field(default=256, ge=1)
+    ransac_iterations: int = Field(
+        default=256, ge=1, description="RANSAC hypotheses of the depth-to-layout scale fit.")
     icp: bool = Field(default=True, description="Refine the scale by ICP against the layout cloud.")
     icp_max_distance: float = Field(default=0.1, gt=0, description="ICP correspondence distance (m).")
-    icp_iterations: int = Field(default=30, ge=1)
+    icp_iterations: int = Field(default=30, ge=1, description="ICP iterations at most (icp on).")
     icp_max_points: int = Field(
         default=50_000, ge=100, description="Random subsample of depth points for ICP."
     )
@@ -78,14 +79,17 @@ class Params(BaseModel):
     outlier_neighbors: int = Field(
         default=20, ge=0, description="remove_statistical_outlier nb_neighbors; 0 = off."
     )
-    outlier_std_ratio: float = Field(default=2.0, gt=0)
+    outlier_std_ratio: float = Field(
+        default=2.0, gt=0,
+        description="remove_statistical_outlier std_ratio: drop points whose mean neighbour distance "
+                    "exceeds the average by this many standard deviations.")
     affine_fit: Literal["per_view", "global"] = Field(
         default="per_view",
         description="Relative depth / disparity: a scale and shift per view (models normalise each image) "
         "or one for all views.",
     )
     include_layout_points: bool = Field(default=True, description="Append the sampling stage's layout cloud.")
-    seed: int = Field(default=0, ge=0, le=2**32 - 1)
+    seed: int = Field(default=0, ge=0, le=2**32 - 1, description="Random seed of RANSAC and the subsamples.")
 
 
 def skip_reason(scene: Scene, params: Params) -> str | None:

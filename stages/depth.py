@@ -71,8 +71,13 @@ class Params(BaseModel):
         default=None, ge=8, description="Cube face side (px) for a model of dynamic size; None: from the "
         "model's metadata, else 256."
     )
-    face_fov_deg: float = Field(default=100.0, ge=90.0, lt=170.0)
-    perspective_axis: Literal["z", "ray"] = "z"
+    face_fov_deg: float = Field(
+        default=100.0, ge=90.0, lt=170.0,
+        description="cubemap: field of view of a face (degrees); above 90 neighbouring faces overlap and "
+                    "are blended.")
+    perspective_axis: Literal["z", "ray"] = Field(
+        default="z",
+        description="cubemap: the model's depth is along the optical axis (z, most models) or the ray.")
     prefer: Literal["file", "model"] = Field(
         default="file", description="Which source wins when a view has both."
     )
