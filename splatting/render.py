@@ -132,12 +132,15 @@ def render(
         means, quats.to(dtype), scales.to(dtype), opacities.to(dtype), _color_fn(colors.to(dtype), sh_degree, N),
         viewmat, camera, eps2d, near, extra_grad=extra,
     )
-    dirs = camera.pixel_dirs(dtype=dtype, device=device)
+    dirs = _pixel_dirs(camera, dtype, device)
     ts = int(tile_size)
-    toff, tlist = bin_gaussians_torch(proj.bbox, proj.packed[:, 18].detach(), H, W, ts)
     if backend == "cuda":
+        from .bin_triton import bin_gaussians
         from .raster_triton import TritonRaster as raster
+
+        toff, tlist, _ = bin_gaussians(proj.bbox, proj.packed[:, 18].detach(), H, W, ts)
     else:
+        toff, tlist = bin_gaussians_torch(proj.bbox, proj.packed[:, 18].detach(), H, W, ts)
         raster = TorchRaster
     color, depth, alpha = raster.apply(proj.packed, dirs, toff, tlist, H, W, ts)
     if background is not None:
@@ -147,6 +150,21 @@ def render(
         image = color
     return RenderOutput(image=image, alpha=alpha, depth=depth, means2d=proj.means2d, radii=proj.radii,
                         visible=proj.visible, backend=backend)
+
+
+_DIRS_CACHE: dict = {}
+
+
+def _pixel_dirs(camera, dtype, device):
+    """The camera's pixel ray directions, computed once per (camera, dtype, device): a render
+    then dispatches no per-frame work for them."""
+    key = (camera, dtype, str(device))
+    dirs = _DIRS_CACHE.get(key)
+    if dirs is None:
+        if len(_DIRS_CACHE) >= 16:
+            _DIRS_CACHE.clear()
+        dirs = _DIRS_CACHE[key] = camera.pixel_dirs(dtype=dtype, device=device)
+    return dirs
 
 
 def _render_cpp(means, quats, scales, opacities, colors, sh_degree, viewmat, camera, eps2d, near, ts, extra):
