@@ -5,10 +5,10 @@
 Here the pair list has a preallocated capacity instead, and every shape is known on the
 host before the device runs:
 
-1. the visible Gaussians are ordered by distance (one ``sort``);
-2. a Triton kernel counts each Gaussian's tiles (in depth order), one ``cumsum`` gives
-   each Gaussian its slice of the pair list;
-3. a second kernel writes, per pair, the tile index (the sort key) and the Gaussian;
+1. the Gaussians are ordered by distance (one ``sort``);
+2. the projection kernel has counted each Gaussian's tiles (splatting/project_triton.py);
+   one ``cumsum`` in depth order gives each Gaussian its slice of the pair list;
+3. a kernel writes, per pair, the tile index (the sort key) and the Gaussian;
    slots past the last pair keep the key ``ntiles`` (after every tile);
 4. one stable ``sort`` of the keys groups the pairs by tile and keeps the depth order
    inside each tile; ``searchsorted`` gives the tile offsets.
@@ -36,42 +36,21 @@ except ImportError:  # raster_triton reports it
 if triton is not None:
 
     @triton.jit
-    def _tile_range(bbox, g, W, TS, NTX):
-        """First tile row, tile rows, first tile column and tile columns of Gaussian ``g``'s
-        box (columns wrap modulo W: one circular run starting at tile c0 // TS)."""
-        r0 = tl.load(bbox + g * 4)
-        r1 = tl.load(bbox + g * 4 + 1)
-        c0 = tl.load(bbox + g * 4 + 2)
-        nc = tl.load(bbox + g * 4 + 3)
-        tr0 = r0 // TS
-        tc0 = c0 // TS
-        end = c0 + nc
-        ntc = tl.where(end > W, NTX - tc0 + (end - W - 1) // TS + 1, (end - 1) // TS - tc0 + 1)
-        ntc = tl.minimum(ntc, NTX)
-        ntr = tl.where(r1 >= r0, r1 // TS - tr0 + 1, 0)
-        return tr0, ntr, tc0, ntc
-
-    @triton.jit
-    def _count_tiles(bbox, order, counts, N, W, TS, NTX, BLOCK: tl.constexpr):
-        i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-        ok = i < N
-        g = tl.load(order + i, mask=ok, other=0)
-        tr0, ntr, tc0, ntc = _tile_range(bbox, g, W, TS, NTX)
-        tl.store(counts + i, tl.where(ok, ntr * ntc, 0), mask=ok)
-
-    @triton.jit
-    def _emit_pairs(bbox, order, offsets, keys, gids, CAP, W, TS, NTX):
-        """One program per Gaussian (in depth order): its pairs (tile, Gaussian) at its slice."""
+    def _emit_pairs(ints, order, offsets, keys, gids, CAP, TS, NTX, INTS: tl.constexpr):
+        """One program per visible Gaussian, in depth order: its (tile, Gaussian) pairs at its slice.
+        ``ints`` rows (splatting/project_triton.py): row0, row1, col0, ncols, tiles, radius."""
         i = tl.program_id(0)
-        g = tl.load(order + i)
-        tr0, ntr, tc0, ntc = _tile_range(bbox, g, W, TS, NTX)
-        n = ntr * ntc
+        g = tl.load(order + i).to(tl.int32)
+        row = ints + g * INTS
+        n = tl.load(row + 4)
+        tr0 = tl.load(row) // TS
+        tc0 = tl.load(row + 2) // TS
+        ntc = tl.maximum(n // tl.maximum(tl.load(row + 1) // TS - tr0 + 1, 1), 1)
         base = tl.load(offsets + i) - n
         for j in range(0, n):
             slot = base + j
             if slot < CAP:
-                tile = (tr0 + j // ntc) * NTX + (tc0 + j % ntc) % NTX
-                tl.store(keys + slot, tile)
+                tl.store(keys + slot, (tr0 + j // ntc) * NTX + (tc0 + j % ntc) % NTX)
                 tl.store(gids + slot, g)
 
 
@@ -99,7 +78,9 @@ class PairCapacity:
         still = []
         for event, host, used in self._pending:
             if event is None or event.query():
-                self._observe(int(host[0]), used)
+                # a host buffer (pinned, filled by a finished copy; on the CPU the tensor itself):
+                # reading it through numpy waits for nothing and dispatches nothing
+                self._observe(int(host.numpy()[0]), used)
             else:
                 still.append((event, host, used))
         self._pending = still
@@ -121,6 +102,7 @@ class PairCapacity:
 
 
 _CAPACITIES: dict = {}
+_TILE_IDS: dict = {}
 
 
 def capacity_for(device: torch.device) -> PairCapacity:
@@ -130,31 +112,40 @@ def capacity_for(device: torch.device) -> PairCapacity:
     return _CAPACITIES[key]
 
 
-def bin_gaussians(bbox: torch.Tensor, dist: torch.Tensor, H: int, W: int, ts: int, capacity: PairCapacity = None):
-    """Tile lists (offsets [ntiles+1] int32, Gaussian indices [capacity] int32, sorted front to
-    back by ``dist`` within each tile) and the pair count (a device scalar); the same lists as
-    ``bin_gaussians_torch`` (ties in index order) while the count fits the capacity."""
-    device = bbox.device
+def _tile_ids(ntiles, device):
+    key = (ntiles, str(device))
+    if key not in _TILE_IDS:
+        _TILE_IDS[key] = torch.arange(ntiles + 1, dtype=torch.int32, device=device)
+    return _TILE_IDS[key]
+
+
+def emit_launch(ints, order, offsets, keys, gids, CAP, ts, ntx, n):
+    """(kernel, grid, args, options) of the pair writer, for the launch and the compile check."""
+    return _emit_pairs, (n,), (ints, order, offsets, keys, gids, CAP, ts, ntx), dict(INTS=6, num_warps=1)
+
+
+def bin_gaussians(ints: torch.Tensor, dist: torch.Tensor, H: int, W: int, ts: int, capacity: PairCapacity = None):
+    """Tile lists from the projection kernel's integer rows ``ints`` [N, INTS] (box, tiles covered)
+    and the distances: offsets [ntiles+1] int32, Gaussian indices [capacity] int32 (front to
+    back within each tile, ties in index order, the lists of ``bin_gaussians_torch``) and the
+    pair count (a device scalar). Nine device operations, no host sync."""
+    device = ints.device
     cap = capacity if capacity is not None else capacity_for(device)
     cap.poll()
     CAP = cap.capacity
     ntx, nty = (W + ts - 1) // ts, (H + ts - 1) // ts
     ntiles = ntx * nty
-    nv = bbox.shape[0]
-    bbox = bbox.to(torch.int32).contiguous()
-    order = torch.sort(dist.detach(), stable=True).indices.to(torch.int32)
-    counts = torch.empty(nv, dtype=torch.int32, device=device)
-    BLOCK = 256
-    if nv:
-        _count_tiles[(triton.cdiv(nv, BLOCK),)](bbox, order, counts, nv, W, ts, ntx, BLOCK=BLOCK)
-    offsets = torch.cumsum(counts, 0, dtype=torch.int32)
+    n = ints.shape[0]
+    order = torch.sort(dist.detach(), stable=True).indices
+    offsets = torch.cumsum(ints[:, 4][order], 0, dtype=torch.int32)
     keys = torch.full((CAP,), ntiles, dtype=torch.int32, device=device)
     gids = torch.empty(CAP, dtype=torch.int32, device=device)
-    if nv:
-        _emit_pairs[(nv,)](bbox, order, offsets, keys, gids, CAP, W, ts, ntx)
+    if n:
+        kernel, grid, args, options = emit_launch(ints, order, offsets, keys, gids, CAP, ts, ntx, n)
+        kernel[grid](*args, **options)
     skeys, perm = torch.sort(keys, stable=True)
     tlist = gids[perm]
-    toff = torch.searchsorted(skeys, torch.arange(ntiles + 1, dtype=torch.int32, device=device), out_int32=True)
-    total = offsets[-1:] if nv else torch.zeros(1, dtype=torch.int32, device=device)
+    toff = torch.searchsorted(skeys, _tile_ids(ntiles, device), out_int32=True)
+    total = offsets[-1:] if n else torch.zeros(1, dtype=torch.int32, device=device)
     cap.record(total, CAP)
     return toff, tlist, total

@@ -122,3 +122,52 @@ class DispatchCounter(TorchDispatchMode):
     def summary(self) -> str:
         parts = [f"{n}×{c}" for n, c in (self.ops + self.kernels).most_common()]
         return f"{self.device_ops} device ops ({', '.join(parts)}); {self.syncs} needing a host sync"
+
+
+class AllocationTracker(DispatchCounter):
+    """Also follows the memory the counted operations allocate: live bytes per storage (freed
+    when the last tensor using it is gone) and their peak. On CPU tensors with the Triton
+    interpreter this is the device memory a CUDA render would hold (docs/gpu.md), without the
+    caching allocator's rounding and without memory held before the tracker started."""
+
+    def __init__(self):
+        super().__init__()
+        self.live = 0
+        self.peak = 0
+        self._users = {}  # storage pointer -> [bytes, number of live tensors]
+
+    def _release(self, key):
+        entry = self._users.get(key)
+        if entry is None:
+            return
+        entry[1] -= 1
+        if entry[1] == 0:
+            self.live -= entry[0]
+            del self._users[key]
+
+    def _track(self, out):
+        import weakref
+
+        for t in out if isinstance(out, (tuple, list)) else (out,):
+            if not isinstance(t, torch.Tensor) or t.device.type == "meta":
+                continue
+            try:
+                st = t.untyped_storage()
+            except (RuntimeError, NotImplementedError):
+                continue
+            key = st.data_ptr()
+            if key == 0:
+                continue
+            entry = self._users.get(key)
+            if entry is None:
+                entry = self._users[key] = [st.nbytes(), 0]
+                self.live += entry[0]
+                self.peak = max(self.peak, self.live)
+            entry[1] += 1
+            weakref.finalize(t, self._release, key)
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        out = super().__torch_dispatch__(func, types, args, kwargs)
+        if not self._inside_kernel:
+            self._track(out)
+        return out

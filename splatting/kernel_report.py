@@ -51,7 +51,7 @@ class KernelStats:
 
     @property
     def per_pair(self) -> float:
-        return self.loop_instructions / self.pairs_per_trip
+        return self.loop_instructions / self.pairs_per_trip if self.pairs_per_trip else float("nan")
 
 
 def _bin_dir() -> Path:
@@ -123,10 +123,12 @@ def inner_loop(instrs):
 
 
 def _mock_launches(dtype_name: str, H: int, W: int, ts: int):
-    """The forward and backward launches of a render, with mock tensors (no memory)."""
+    """Every kernel launch of a render and its backward, with mock tensors (no memory):
+    (name, (kernel, grid, args, options), Gaussian-pixel pairs per inner-loop trip or None)."""
     import torch
     from triton.runtime.jit import MockTensor
 
+    from . import bin_triton, project_triton
     from . import raster_triton as rt
 
     class Mock(MockTensor):  # a 16-byte aligned tensor of ``dtype``, as torch allocates them
@@ -135,11 +137,19 @@ def _mock_launches(dtype_name: str, H: int, W: int, ts: int):
 
     f = Mock(getattr(torch, dtype_name))
     i32 = Mock(torch.int32)
-    fwd = rt.forward_launch(f, f, i32, i32, f, f, f, i32, H, W, ts)
-    bwd = rt.backward_launch(f, f, i32, i32, f, i32, f, f, f, f, H, W, ts)
+    i64 = Mock(torch.int64)
+    b = Mock(torch.bool)
     size = f.element_size()
-    return [("forward", fwd, rt.pairs_per_trip("forward", ts, size)),
-            ("backward", bwd, rt.pairs_per_trip("backward", ts, size))]
+    N = 300_000
+    out = [("forward", rt.forward_launch(f, f, i32, i32, f, f, f, i32, H, W, ts), rt.pairs_per_trip("forward", ts, size)),
+           ("backward", rt.backward_launch(f, f, i32, i32, f, i32, f, f, f, f, H, W, ts),
+            rt.pairs_per_trip("backward", ts, size))]
+    for sh in (-1, 3):
+        launch = project_triton.projection_launch(
+            Mock(f.dtype, [N, 3]), f, f, f, f, f, f, f, i32, b, f, H, W, ts, True, sh, 16 if sh >= 0 else 1)
+        out.append((f"project ({'RGB' if sh < 0 else 'SH 3'})", launch, None))
+    out.append(("emit pairs", bin_triton.emit_launch(i32, i64, i32, i32, i32, 1 << 22, ts, W // ts, N), None))
+    return out
 
 
 def report(archs=ARCHS, dtypes=("float32", "float64"), H=RENDER_HW[0], W=RENDER_HW[1], ts=TILE) -> list[KernelStats]:
@@ -151,11 +161,11 @@ def report(archs=ARCHS, dtypes=("float32", "float64"), H=RENDER_HW[0], W=RENDER_
             for arch in archs:
                 compiled, log = _compile(fn, args, options, arch)
                 regs, st, ld = _ptxas_numbers(log)
-                body = inner_loop(sass_instructions(compiled.asm["cubin"]))
+                body = inner_loop(sass_instructions(compiled.asm["cubin"])) if pairs else []
                 rows.append(KernelStats(
                     kernel=name, arch=arch, dtype=dtype, num_warps=options["num_warps"], registers=regs,
                     spill_stores=st, spill_loads=ld, shared=int(compiled.metadata.shared),
-                    loop_instructions=len(body), pairs_per_trip=pairs,
+                    loop_instructions=len(body), pairs_per_trip=pairs or 0.0,
                     barriers=sum(t.split()[0].startswith("BAR") for t in body),
                     shuffles=sum("SHFL" in t for t in body)))
     return rows
@@ -179,9 +189,10 @@ def to_markdown(rows) -> str:
              "| SASS per pair | BAR in loop | SHFL in loop |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
+        loop = (f"{r.loop_instructions} | {r.pairs_per_trip:g} | {r.per_pair:.1f} | {r.barriers} | {r.shuffles}"
+                if r.pairs_per_trip else "– | – | – | – | –")
         lines.append(f"| {r.kernel} | {r.dtype} | {r.arch} | {r.num_warps} | {r.registers} | {r.spill_stores}/"
-                     f"{r.spill_loads} | {r.shared} | {r.loop_instructions} | {r.pairs_per_trip:g} | "
-                     f"{r.per_pair:.1f} | {r.barriers} | {r.shuffles} |")
+                     f"{r.spill_loads} | {r.shared} | {loop} |")
     return "\n".join(lines) + "\n"
 
 

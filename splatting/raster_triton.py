@@ -76,7 +76,7 @@ if triton is not None:
         return tile, row * W + col, ok
 
     @triton.jit
-    def _raster_fwd(P, dirs, toff, tlist, out_color, out_depth, out_T, out_last, H, W, TS,
+    def _raster_fwd(P, dirs, toff, tlist, out_color, out_depth, out_T, out_last, npx, H, W, TS,
                     BATCH: tl.constexpr, SPLIT: tl.constexpr, BLOCK_PIX: tl.constexpr):
         tile, pix, pok = _tile_pixels(tl.program_id(0), H, W, TS, SPLIT, BLOCK_PIX)
         # pixels outside the image get d = 0, hence c = 0: never kept, no mask needed in the loop
@@ -119,6 +119,7 @@ if triton is not None:
         tl.store(out_color + pix * 3 + 2, acc_b, mask=pok)
         tl.store(out_depth + pix, acc_d, mask=pok)
         tl.store(out_T + pix, T, mask=pok)
+        tl.store(out_T + npx + pix, 1.0 - T, mask=pok)  # the alpha channel, in the same buffer
         tl.store(out_last + pix, last, mask=pok)
 
     @triton.jit
@@ -246,12 +247,12 @@ def pairs_per_trip(kernel: str, ts: int, element_size: int) -> float:
     return max(1, triton.next_power_of_2(ts * ts) // split) / (32 * warps)
 
 
-def forward_launch(P, dirs, toff, tlist, color, depth, T_final, last, H, W, ts):
+def forward_launch(P, dirs, toff, tlist, color, depth, T_alpha, last, H, W, ts):
     """(kernel, grid, args, constexprs and launch options) of the forward: the one place the
     launch is spelled out, used by :class:`TritonRaster` and by the compile check
     (splatting/kernel_report.py), so the check compiles what runs."""
     grid, options = _config("forward", H, W, ts, P.element_size())
-    return (_raster_fwd, grid, (P, dirs, toff, tlist, color, depth, T_final, last, H, W, ts),
+    return (_raster_fwd, grid, (P, dirs, toff, tlist, color, depth, T_alpha, last, H * W, H, W, ts),
             dict(BATCH=BATCH, **options))
 
 
@@ -284,12 +285,12 @@ class TritonRaster(torch.autograd.Function):
         # every pixel belongs to exactly one tile program, which writes all four outputs
         color = torch.empty(npx, 3, dtype=dtype, device=device)
         depth = torch.empty(npx, dtype=dtype, device=device)
-        T_final = torch.empty(npx, dtype=dtype, device=device)
+        T_alpha = torch.empty(2, npx, dtype=dtype, device=device)  # final transmittance, 1 − it
         last = torch.empty(npx, dtype=torch.int32, device=device)
-        _launch(*forward_launch(P, dirs, toff, tlist, color, depth, T_final, last, H, W, ts))
-        ctx.save_for_backward(P, dirs, toff, tlist, T_final, last)
+        _launch(*forward_launch(P, dirs, toff, tlist, color, depth, T_alpha, last, H, W, ts))
+        ctx.save_for_backward(P, dirs, toff, tlist, T_alpha[0], last)
         ctx.dims = (H, W, ts)
-        return color.reshape(H, W, 3), depth.reshape(H, W), (1.0 - T_final).reshape(H, W)
+        return color.reshape(H, W, 3), depth.reshape(H, W), T_alpha[1].reshape(H, W)
 
     @staticmethod
     def backward(ctx, g_color, g_depth, g_alpha):

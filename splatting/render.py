@@ -128,28 +128,39 @@ def render(
             image = image + (1.0 - alpha)[..., None] * bg
         return RenderOutput(image=image, alpha=alpha, depth=depth, means2d=means2d, radii=radii, visible=visible,
                             backend=backend)
-    proj = project(
-        means, quats.to(dtype), scales.to(dtype), opacities.to(dtype), _color_fn(colors.to(dtype), sh_degree, N),
-        viewmat, camera, eps2d, near, extra_grad=extra,
-    )
     dirs = _pixel_dirs(camera, dtype, device)
     ts = int(tile_size)
     if backend == "cuda":
+        # projection and binning in Triton kernels: a fixed handful of launches, no host sync
         from .bin_triton import bin_gaussians
-        from .raster_triton import TritonRaster as raster
+        from .project_triton import project_gaussians
+        from .raster_triton import TritonRaster
 
-        toff, tlist, _ = bin_gaussians(proj.bbox, proj.packed[:, 18].detach(), H, W, ts)
+        colors = colors.to(dtype)
+        _color_fn(colors, sh_degree, N)  # shape checks
+        if colors.dim() == 3 and sh_degree is None:
+            sh_degree = int(round(math.sqrt(colors.shape[1]))) - 1
+        packed, ints, visible, means2d = project_gaussians(
+            means, quats.to(dtype), scales.to(dtype), opacities.to(dtype), colors, viewmat, camera, eps2d, near,
+            sh_degree, ts, _color_fn)
+        toff, tlist, _ = bin_gaussians(ints, packed[:, 18].detach(), H, W, ts)
+        color, depth, alpha = TritonRaster.apply(packed, dirs, toff, tlist, H, W, ts)
+        radii = ints[:, 5]
     else:
+        proj = project(
+            means, quats.to(dtype), scales.to(dtype), opacities.to(dtype), _color_fn(colors.to(dtype), sh_degree, N),
+            viewmat, camera, eps2d, near, extra_grad=extra,
+        )
         toff, tlist = bin_gaussians_torch(proj.bbox, proj.packed[:, 18].detach(), H, W, ts)
-        raster = TorchRaster
-    color, depth, alpha = raster.apply(proj.packed, dirs, toff, tlist, H, W, ts)
+        color, depth, alpha = TorchRaster.apply(proj.packed, dirs, toff, tlist, H, W, ts)
+        means2d, radii, visible = proj.means2d, proj.radii, proj.visible
     if background is not None:
         bg = torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
         image = color + (1.0 - alpha)[..., None] * bg
     else:
         image = color
-    return RenderOutput(image=image, alpha=alpha, depth=depth, means2d=proj.means2d, radii=proj.radii,
-                        visible=proj.visible, backend=backend)
+    return RenderOutput(image=image, alpha=alpha, depth=depth, means2d=means2d, radii=radii, visible=visible,
+                        backend=backend)
 
 
 _DIRS_CACHE: dict = {}

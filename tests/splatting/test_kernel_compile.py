@@ -10,7 +10,7 @@ from splatting.kernel_report import report_in_subprocess  # noqa: E402
 
 # registers per thread: a forward at <= 128 keeps >= 16 warps resident per SM (65536 registers);
 # the backward holds 11 per-pixel values for 8 pixels per thread, so it may use the whole 255.
-REG_BUDGET = {"forward": 128, "backward": 255}
+REG_BUDGET = {"forward": 128, "backward": 255, "project (RGB)": 128, "project (SH 3)": 128, "emit pairs": 64}
 # SASS instructions per Gaussian-pixel pair in the float32 inner loops (issue 26's targets)
 PAIR_BUDGET = {"forward": 40, "backward": 120}
 
@@ -22,7 +22,7 @@ def rows():
 
 def test_every_kernel_compiles_for_both_archs(rows):
     seen = {(r.kernel, r.arch, r.dtype) for r in rows}
-    assert seen == {(k, a, d) for k in ("forward", "backward") for a in (80, 90) for d in ("float32", "float64")}
+    assert seen == {(k, a, d) for k in REG_BUDGET for a in (80, 90) for d in ("float32", "float64")}
 
 
 def test_no_spills_and_register_budget(rows):
@@ -34,6 +34,8 @@ def test_no_spills_and_register_budget(rows):
 
 def test_inner_loops_within_instruction_budget(rows):
     for r in rows:
+        if r.kernel not in PAIR_BUDGET:
+            continue  # per-Gaussian kernels: no pixel loop
         assert r.loop_instructions > 50, f"{r.kernel}: no inner loop found in the SASS"  # the count is not vacuous
         assert r.barriers == 0, f"{r.kernel} {r.dtype} sm_{r.arch}: a barrier in the inner loop"
         if r.dtype == "float32":
