@@ -36,22 +36,24 @@ except ImportError:  # raster_triton reports it
 if triton is not None:
 
     @triton.jit
-    def _emit_pairs(ints, order, offsets, keys, gids, CAP, TS, NTX, INTS: tl.constexpr):
-        """One program per visible Gaussian, in depth order: its (tile, Gaussian) pairs at its slice.
-        ``ints`` rows (splatting/project_triton.py): row0, row1, col0, ncols, tiles, radius."""
-        i = tl.program_id(0)
-        g = tl.load(order + i).to(tl.int32)
+    def _emit_pairs(ints, order, offsets, keys, gids, CAP, N, TS, NTX, INTS: tl.constexpr, BLOCK: tl.constexpr):
+        """BLOCK Gaussians per program, taken in depth order: each writes its (tile, Gaussian) pairs
+        at its slice of the list. ``ints`` rows (splatting/project_triton.py): row0, row1, col0,
+        ncols, tiles covered, radius."""
+        i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        ok = i < N
+        g = tl.load(order + i, mask=ok, other=0).to(tl.int32)
         row = ints + g * INTS
-        n = tl.load(row + 4)
-        tr0 = tl.load(row) // TS
-        tc0 = tl.load(row + 2) // TS
-        ntc = tl.maximum(n // tl.maximum(tl.load(row + 1) // TS - tr0 + 1, 1), 1)
-        base = tl.load(offsets + i) - n
-        for j in range(0, n):
+        n = tl.load(row + 4, mask=ok, other=0)
+        tr0 = tl.load(row, mask=ok, other=0) // TS
+        tc0 = tl.load(row + 2, mask=ok, other=0) // TS
+        ntc = tl.maximum(n // tl.maximum(tl.load(row + 1, mask=ok, other=0) // TS - tr0 + 1, 1), 1)
+        base = tl.load(offsets + i, mask=ok, other=0) - n
+        for j in range(0, tl.max(n, axis=0)):
             slot = base + j
-            if slot < CAP:
-                tl.store(keys + slot, (tr0 + j // ntc) * NTX + (tc0 + j % ntc) % NTX)
-                tl.store(gids + slot, g)
+            m = (j < n) & (slot < CAP)
+            tl.store(keys + slot, (tr0 + j // ntc) * NTX + (tc0 + j % ntc) % NTX, mask=m)
+            tl.store(gids + slot, g, mask=m)
 
 
 class PairCapacity:
@@ -121,7 +123,11 @@ def _tile_ids(ntiles, device):
 
 def emit_launch(ints, order, offsets, keys, gids, CAP, ts, ntx, n):
     """(kernel, grid, args, options) of the pair writer, for the launch and the compile check."""
-    return _emit_pairs, (n,), (ints, order, offsets, keys, gids, CAP, ts, ntx), dict(INTS=6, num_warps=1)
+    return (_emit_pairs, (triton.cdiv(n, EMIT_BLOCK),), (ints, order, offsets, keys, gids, CAP, n, ts, ntx),
+            dict(INTS=6, BLOCK=EMIT_BLOCK, num_warps=4))
+
+
+EMIT_BLOCK = 128
 
 
 def bin_gaussians(ints: torch.Tensor, dist: torch.Tensor, H: int, W: int, ts: int, capacity: PairCapacity = None):
