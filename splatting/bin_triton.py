@@ -137,7 +137,10 @@ def bin_gaussians(ints: torch.Tensor, dist: torch.Tensor, H: int, W: int, ts: in
     pair count (a device scalar). Nine device operations, no host sync."""
     device = ints.device
     cap = capacity if capacity is not None else capacity_for(device)
-    cap.poll()
+    # inside a CUDA graph capture the capacity is frozen into the graph: no event queries or copies
+    capturing = device.type == "cuda" and torch.cuda.is_current_stream_capturing()
+    if not capturing:
+        cap.poll()
     CAP = cap.capacity
     ntx, nty = (W + ts - 1) // ts, (H + ts - 1) // ts
     ntiles = ntx * nty
@@ -153,5 +156,6 @@ def bin_gaussians(ints: torch.Tensor, dist: torch.Tensor, H: int, W: int, ts: in
     tlist = gids[perm]
     toff = torch.searchsorted(skeys, _tile_ids(ntiles, device), out_int32=True)
     total = offsets[-1:] if n else torch.zeros(1, dtype=torch.int32, device=device)
-    cap.record(total, CAP)
+    if not capturing:
+        cap.record(total, CAP)
     return toff, tlist, total

@@ -14,7 +14,7 @@ Triton must not be in interpreter mode here (``TRITON_INTERPRET`` unset when tri
 imported); :func:`report_in_subprocess` runs :func:`report` in a fresh interpreter, which is
 how the test suite (interpreter on) checks the compiled kernels.
 
-    python -m splatting.kernel_report [--md docs/gpu.md] [--json out.json]
+    pano-pipe bench kernels [--out DIR] [--doc docs/gpu.md]   (or python -m splatting.kernel_report)
 """
 
 from __future__ import annotations
@@ -148,7 +148,8 @@ def _mock_launches(dtype_name: str, H: int, W: int, ts: int):
         launch = project_triton.projection_launch(
             Mock(f.dtype, [N, 3]), f, f, f, f, f, f, f, i32, b, f, H, W, ts, True, sh, 16 if sh >= 0 else 1)
         out.append((f"project ({'RGB' if sh < 0 else 'SH 3'})", launch, None))
-    out.append(("emit pairs", bin_triton.emit_launch(i32, i64, i32, i32, i32, 1 << 22, ts, W // ts, N), None))
+    if dtype_name == "float32":  # integer only: the same kernel for every working dtype
+        out.append(("emit pairs", bin_triton.emit_launch(i32, i64, i32, i32, i32, 1 << 22, ts, W // ts, N), None))
     return out
 
 
@@ -196,16 +197,34 @@ def to_markdown(rows) -> str:
     return "\n".join(lines) + "\n"
 
 
+MARK_BEGIN = "<!-- kernel-table: pano-pipe bench kernels --doc docs/gpu.md -->"
+MARK_END = "<!-- /kernel-table -->"
+
+
+def write(rows, out_md: Path, out_json: Path, doc: Path | None = None):
+    """The table to ``out_md``/``out_json`` (and between the markers of ``doc``); prints it."""
+    table = to_markdown(rows)
+    print(table)
+    out_md.parent.mkdir(parents=True, exist_ok=True)
+    out_md.write_text(f"# Triton kernels compiled ahead of time ({RENDER_HW[0]}x{RENDER_HW[1]} launches)\n\n{table}")
+    out_json.write_text(json.dumps([asdict(r) | {"per_pair": r.per_pair} for r in rows], indent=2) + "\n")
+    if doc is not None:
+        text = doc.read_text()
+        if MARK_BEGIN not in text or MARK_END not in text:
+            raise ValueError(f"{doc}: no {MARK_BEGIN!r} ... {MARK_END!r} section")
+        head, rest = text.split(MARK_BEGIN, 1)
+        _, tail = rest.split(MARK_END, 1)
+        doc.write_text(f"{head}{MARK_BEGIN}\n{table}{MARK_END}{tail}")
+
+
 def main(argv=None):
     import argparse
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--json", type=Path)
+    ap.add_argument("--out", type=Path, default=Path("runs/bench"))
+    ap.add_argument("--doc", type=Path, default=None)
     args = ap.parse_args(argv)
-    rows = report()
-    print(to_markdown(rows))
-    if args.json:
-        args.json.write_text(json.dumps([asdict(r) | {"per_pair": r.per_pair} for r in rows], indent=2) + "\n")
+    write(report(), args.out / "bench_kernels.md", args.out / "bench_kernels.json", args.doc)
 
 
 if __name__ == "__main__":

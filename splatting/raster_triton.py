@@ -1,21 +1,25 @@
 """The ``cuda`` backend's tile rasteriser: Triton kernels, forward and backward.
 
-Projection (:func:`splatting.project.project`), sorting and binning
-(:func:`splatting.raster_torch.bin_gaussians_torch`) stay plain torch; these two
-kernels replace :class:`splatting.raster_torch.TorchRaster` and implement exactly its
-math (and the ``cpp`` kernel's): one program per tile, the tile's pixels as one block.
+Projection (splatting/project_triton.py) and binning (splatting/bin_triton.py) produce the
+packed rows and per-tile lists; these two kernels replace
+:class:`splatting.raster_torch.TorchRaster` and implement exactly its math (and the ``cpp``
+kernel's). They have the form of the CUDA rasterisers (3DGS, gsplat): the tile's pixels are the
+lanes, and the tile's list is walked one Gaussian at a time, its parameters read with scalar
+(broadcast) loads, so nothing of size Gaussians × pixels is ever held in registers. The
+reasons and the compiled numbers are in docs/gpu.md.
 
-* Forward: the tile's list is walked front to back in chunks of ``CHUNK`` Gaussians.
-  A chunk is evaluated as a [CHUNK, pixels] block; the transmittance inside the chunk
-  is a cumulative product along the Gaussian axis, so the per-Gaussian loop of the
-  CPU kernel becomes a few block operations. The program stops once every pixel of the
-  tile is saturated (T < T_MIN). It writes colour, depth, the final transmittance and,
-  per pixel, the list index of the last Gaussian blended: all the backward needs.
-* Backward (as gsplat): the list is walked back to front from the tile's last blended
-  entry; each pixel's transmittance is recovered from its final value by dividing by
-  (1 − α) (a reverse cumulative product), the colour "behind" a Gaussian is a reverse
-  cumulative sum. The per-(Gaussian, pixel) gradients are summed over the tile's
-  pixels first, then added to the Gaussian's row with one atomic add per parameter.
+* Forward: front to back; per pixel T, the colour/depth sums and the index of the last
+  Gaussian blended. The Gaussian is one ``exp2`` (the conic and the cutoff are scaled by
+  −log2 e once per Gaussian) and 1/c one ``rsqrt(c²)`` (c > 0 wherever a pixel is kept),
+  so no range fix-ups; the program checks "is any pixel of the tile unsaturated" once per
+  ``BATCH`` Gaussians and stops when none is.
+* Backward (as gsplat): back to front from the tile's last blend; each pixel's
+  transmittance is recovered by dividing by (1 − α); a Gaussian that hits no pixel of the
+  program is skipped (a uniform branch). Its 19 gradients are summed over the program's
+  pixels inside one warp (shuffles, no barrier), gathered into one vector (lane j holds
+  parameter j) and added with one relaxed atomic per lane.
+* Indices are int32 (up to 2³¹ pairs); each program is one warp; float64 splits a tile
+  over two programs so that it needs no spills (``LAUNCH``).
 
 Memory: O(Gaussians + pairs + pixels), nothing of size pixels × Gaussians.
 

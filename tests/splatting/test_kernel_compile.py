@@ -22,7 +22,9 @@ def rows():
 
 def test_every_kernel_compiles_for_both_archs(rows):
     seen = {(r.kernel, r.arch, r.dtype) for r in rows}
-    assert seen == {(k, a, d) for k in REG_BUDGET for a in (80, 90) for d in ("float32", "float64")}
+    expected = {(k, a, d) for k in REG_BUDGET for a in (80, 90) for d in ("float32", "float64")}
+    expected -= {("emit pairs", a, "float64") for a in (80, 90)}  # integer only: compiled once
+    assert seen == expected
 
 
 def test_no_spills_and_register_budget(rows):
