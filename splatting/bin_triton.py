@@ -14,10 +14,12 @@ host before the device runs:
    inside each tile; ``searchsorted`` gives the tile offsets.
 
 Pairs beyond the capacity are dropped by the kernel, and the render would then miss
-them; :class:`PairCapacity` prevents that without waiting: each render copies its pair
-count to pinned host memory asynchronously, and the next render reads it only once its
-event has completed, growing the capacity before anything is lost in steady state. A
-render that finds an earlier one overflowed warns (once) and says by how much.
+them. :class:`PairCapacity` sizes the list once by reading the pair count (the first render
+on a device, and again when the scene has grown by a quarter, as densification does), with a
+50 % margin; after that each render copies its pair count to pinned host memory
+asynchronously, and a later render reads it once its event has completed, growing the
+capacity before the margin is used up. A render that finds an earlier one overflowed warns
+and says by how much.
 Everything is int32 (the kernels index with 32-bit integers: up to 2³¹ pairs).
 """
 
@@ -60,18 +62,31 @@ class PairCapacity:
     """The pair list's capacity on one device, grown from the counts of earlier renders
     without waiting for them (see the module docstring)."""
 
-    def __init__(self, initial: int = 1 << 16, growth: float = 1.5):
+    def __init__(self, initial: int = 1 << 16, growth: float = 1.5, regrow_n: float = 1.25):
         self.capacity = int(initial)
         self.growth = float(growth)
+        self.regrow_n = float(regrow_n)
+        self.sized_n = None  # Gaussian count of the last synchronous sizing (None: never sized)
         self._pending = []  # (event or None, pinned host count, capacity used)
         self.largest_seen = 0
+
+    def needs_sizing(self, n: int) -> bool:
+        """Whether this render must read its pair count before allocating: on the first render,
+        and when the scene has grown past ``regrow_n`` × the count it was sized for (densification)."""
+        return self.sized_n is None or n > self.regrow_n * self.sized_n
+
+    def size(self, n: int, pairs: int):
+        """Size for ``pairs`` pairs of a render of ``n`` Gaussians (with the growth margin)."""
+        self.largest_seen = max(self.largest_seen, int(pairs))
+        self.capacity = max(self.capacity, int(pairs * self.growth) + 1)
+        self.sized_n = int(n)
 
     def _observe(self, count: int, used: int):
         self.largest_seen = max(self.largest_seen, count)
         if count > used:
             warnings.warn(f"splatting: a render had {count} tile-Gaussian pairs, more than the pair capacity {used}; "
                           f"it missed the rest. The capacity grows to {int(count * self.growth)} (set it ahead with "
-                          "splatting.bin_triton.PairCapacity.reserve).", RuntimeWarning, stacklevel=4)
+                          "splatting.bin_triton.capacity_for(device).reserve).", RuntimeWarning, stacklevel=4)
         if count * self.growth > self.capacity:
             self.capacity = int(count * self.growth) + 1
 
@@ -98,9 +113,10 @@ class PairCapacity:
         else:  # on the CPU (the interpreter) the value is already there
             self._pending.append((None, total.reshape(1), used))
 
-    def reserve(self, pairs: int):
-        """Make room for ``pairs`` pairs from the next render on."""
+    def reserve(self, pairs: int, n: int):
+        """Make room for ``pairs`` pairs from the next render of about ``n`` Gaussians on (no sizing sync)."""
         self.capacity = max(self.capacity, int(pairs))
+        self.sized_n = int(n)
 
 
 _CAPACITIES: dict = {}
@@ -134,19 +150,21 @@ def bin_gaussians(ints: torch.Tensor, dist: torch.Tensor, H: int, W: int, ts: in
     """Tile lists from the projection kernel's integer rows ``ints`` [N, INTS] (box, tiles covered)
     and the distances: offsets [ntiles+1] int32, Gaussian indices [capacity] int32 (front to
     back within each tile, ties in index order, the lists of ``bin_gaussians_torch``) and the
-    pair count (a device scalar). Nine device operations, no host sync."""
+    pair count (a device scalar). Nine device operations; no host sync once the capacity is sized."""
     device = ints.device
     cap = capacity if capacity is not None else capacity_for(device)
     # inside a CUDA graph capture the capacity is frozen into the graph: no event queries or copies
     capturing = device.type == "cuda" and torch.cuda.is_current_stream_capturing()
     if not capturing:
         cap.poll()
-    CAP = cap.capacity
     ntx, nty = (W + ts - 1) // ts, (H + ts - 1) // ts
     ntiles = ntx * nty
     n = ints.shape[0]
     order = torch.sort(dist.detach(), stable=True).indices
     offsets = torch.cumsum(ints[:, 4][order], 0, dtype=torch.int32)
+    if n and not capturing and cap.needs_sizing(n):
+        cap.size(n, int(offsets[-1]))  # the one host sync: first render, or after the scene grew
+    CAP = cap.capacity
     keys = torch.full((CAP,), ntiles, dtype=torch.int32, device=device)
     gids = torch.empty(CAP, dtype=torch.int32, device=device)
     if n:

@@ -34,6 +34,7 @@ def _count_render(height, run_kernels, monkeypatch):
     vm = eye(torch.float32).to(DEVICE)
     render_module._pixel_dirs(cam, torch.float32, DEVICE)  # the cached per-camera directions
     monkeypatch.setattr(bin_triton, "_CAPACITIES", {})  # a dry run's pair count must not size later renders
+    bin_triton.capacity_for(DEVICE).reserve(1 << 12, 4)  # sized: the first render's one sync is not counted
     with DispatchCounter(run_kernels=run_kernels) as counter:
         out = splatting.render(m, q, s, o, sh, vm, cam, backend="cuda")
     return counter, out
@@ -51,6 +52,21 @@ def test_one_render_dispatches_few_ops_and_never_syncs(monkeypatch):
     if DEVICE.type == "cpu":
         full, _ = _count_render(512, False, monkeypatch)
         assert full.ops == small.ops and full.kernels == small.kernels, (full.summary(), small.summary())
+
+
+def test_first_render_sizes_the_pair_list_once(monkeypatch):
+    """The capacity is read once (one sync), then never again until the scene grows by a quarter."""
+    monkeypatch.setattr(bin_triton, "_CAPACITIES", {})
+    params = _small_scene(30, seed=6, shrink=1.0)
+    vm, cam = eye(torch.float32).to(DEVICE), splatting.EquirectCamera(8, 16)
+    with DispatchCounter() as first:
+        splatting.render(*params, vm, cam, backend="cuda")
+    with DispatchCounter() as second:
+        splatting.render(*params, vm, cam, backend="cuda")
+    assert first.syncs == 1 and second.syncs == 0, (first.summary(), second.summary())
+    cap = bin_triton.capacity_for(DEVICE)
+    assert cap.capacity > cap.largest_seen > 0 and cap.sized_n == 30
+    assert cap.needs_sizing(40) and not cap.needs_sizing(37)
 
 
 def test_reference_projection_counts_as_syncing():
@@ -71,6 +87,7 @@ def test_pair_capacity_grows_without_losing_later_renders():
     saved = cap.capacity
     try:
         cap.poll()
+        cap.reserve(0, 60)
         cap.capacity = 8  # far too small: this render misses pairs
         short = splatting.render(*params, vm, cam, backend="cuda")
         assert float((short.image.cpu() - ref.image).abs().max()) > 1e-3
@@ -111,6 +128,8 @@ def test_memory_formula_matches_allocations():
     cam = splatting.EquirectCamera(h, 2 * h)
     render_module._pixel_dirs(cam, torch.float32, DEVICE)
     cap = bin_triton.capacity_for(DEVICE)
+    cap.poll()
+    cap.reserve(1 << 14, n)
     capacity = cap.capacity
     with AllocationTracker() as tracker:
         out = splatting.render(*leaves, eye(torch.float32), cam, backend="cuda")
