@@ -67,7 +67,8 @@ class PairCapacity:
         self.growth = float(growth)
         self.regrow_n = float(regrow_n)
         self.sized_n = None  # Gaussian count of the last synchronous sizing (None: never sized)
-        self._pending = []  # (event or None, pinned host count, capacity used)
+        self._pending = None  # (event or None, host count, capacity used) of the render in flight
+        self._host = None
         self.largest_seen = 0
 
     def needs_sizing(self, n: int) -> bool:
@@ -91,27 +92,30 @@ class PairCapacity:
             self.capacity = int(count * self.growth) + 1
 
     def poll(self):
-        """Read the counts of finished renders (never waits for the device)."""
-        still = []
-        for event, host, used in self._pending:
-            if event is None or event.query():
-                # a host buffer (pinned, filled by a finished copy; on the CPU the tensor itself):
-                # reading it through numpy waits for nothing and dispatches nothing
-                self._observe(int(host.numpy()[0]), used)
-            else:
-                still.append((event, host, used))
-        self._pending = still
+        """Read the count of the render in flight if it has finished (never waits for the device)."""
+        if self._pending is None:
+            return
+        event, host, used = self._pending
+        if event is None or event.query():
+            self._pending = None
+            # a host buffer (pinned, filled by a finished copy; on the CPU the tensor itself):
+            # reading it through numpy waits for nothing and dispatches nothing
+            self._observe(int(host.numpy()[0]), used)
 
     def record(self, total: torch.Tensor, used: int):
-        """Remember this render's pair count, copied to the host asynchronously."""
+        """Have this render's pair count copied to the host asynchronously, unless an earlier
+        count is still in flight (one pinned buffer, reused)."""
+        if self._pending is not None:
+            return
         if total.device.type == "cuda":
-            host = torch.empty(1, dtype=total.dtype, pin_memory=True)
-            host.copy_(total.reshape(1), non_blocking=True)
+            if self._host is None:
+                self._host = torch.empty(1, dtype=total.dtype, pin_memory=True)
+            self._host.copy_(total.reshape(1), non_blocking=True)
             event = torch.cuda.Event()
             event.record()
-            self._pending.append((event, host, used))
+            self._pending = (event, self._host, used)
         else:  # on the CPU (the interpreter) the value is already there
-            self._pending.append((None, total.reshape(1), used))
+            self._pending = (None, total.reshape(1), used)
 
     def reserve(self, pairs: int, n: int):
         """Make room for ``pairs`` pairs from the next render of about ``n`` Gaussians on (no sizing sync)."""
@@ -133,6 +137,8 @@ def capacity_for(device: torch.device) -> PairCapacity:
 def _tile_ids(ntiles, device):
     key = (ntiles, str(device))
     if key not in _TILE_IDS:
+        if len(_TILE_IDS) >= 16:
+            _TILE_IDS.clear()
         _TILE_IDS[key] = torch.arange(ntiles + 1, dtype=torch.int32, device=device)
     return _TILE_IDS[key]
 

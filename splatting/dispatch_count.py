@@ -27,8 +27,7 @@ aten = torch.ops.aten
 
 # operations whose result the host must read (a value, or a shape that depends on values)
 _SYNC_PACKETS = {aten._local_scalar_dense, aten.nonzero, aten.masked_select, aten.repeat_interleave,
-                 aten.bincount, aten.unique_consecutive, aten._unique2, aten.unique_dim, aten.argwhere,
-                 aten.nonzero_static if hasattr(aten, "nonzero_static") else aten.nonzero}
+                 aten.bincount, aten.unique_consecutive, aten._unique2, aten.unique_dim, aten.argwhere}
 # bookkeeping that launches nothing on a device
 _FREE = {aten.detach, aten.view, aten._unsafe_view, aten.alias, aten.t, aten.transpose, aten.permute,
          aten.expand, aten.reshape, aten.squeeze, aten.unsqueeze, aten.select, aten.slice, aten.as_strided,

@@ -54,10 +54,17 @@ class KernelStats:
         return self.loop_instructions / self.pairs_per_trip if self.pairs_per_trip else float("nan")
 
 
-def _bin_dir() -> Path:
+def _cuobjdump() -> str:
+    """The cuobjdump shipped in the triton wheel, else the one on PATH (a CUDA toolkit)."""
+    import shutil
+
     import triton
 
-    return Path(triton.__file__).parent / "backends" / "nvidia" / "bin"
+    bundled = Path(triton.__file__).parent / "backends" / "nvidia" / "bin" / "cuobjdump"
+    found = str(bundled) if bundled.exists() else shutil.which("cuobjdump")
+    if not found:
+        raise RuntimeError("cuobjdump not found (neither in the triton wheel nor on PATH)")
+    return found
 
 
 def _compile(fn, args, options, arch):
@@ -99,7 +106,7 @@ def sass_instructions(cubin: bytes) -> list[tuple[int, str]]:
     with tempfile.NamedTemporaryFile(suffix=".cubin") as f:
         f.write(cubin)
         f.flush()
-        out = subprocess.run([str(_bin_dir() / "cuobjdump"), "-sass", f.name], capture_output=True, text=True,
+        out = subprocess.run([_cuobjdump(), "-sass", f.name], capture_output=True, text=True,
                              check=True).stdout
     return [(int(m.group(1), 16), m.group(2).strip()) for m in map(_SASS_LINE.search, out.splitlines()) if m]
 
