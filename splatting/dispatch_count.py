@@ -112,16 +112,23 @@ class DispatchCounter(TorchDispatchMode):
                 counter._inside_kernel -= 1
 
         interpreter.GridExecutor.__call__ = call
-        old_hook = knobs.runtime.launch_enter_hook
+        chain = knobs.runtime.launch_enter_hook  # a HookChain in triton 3.8, a plain slot before
 
-        def hook(metadata):
-            counter.kernels[getattr(metadata, "name", "triton")] += 1
+        def hook(metadata):  # compiled launches: a LazyDict whose get() holds the kernel's name
+            data = metadata.get() if hasattr(metadata, "get") else {}
+            counter.kernels[data.get("name", "triton") if isinstance(data, dict) else "triton"] += 1
 
-        knobs.runtime.launch_enter_hook = hook
+        if hasattr(chain, "add"):
+            chain.add(hook)
+        else:
+            knobs.runtime.launch_enter_hook = hook
 
         def restore():
             interpreter.GridExecutor.__call__ = original
-            knobs.runtime.launch_enter_hook = old_hook
+            if hasattr(chain, "remove"):
+                chain.remove(hook)
+            else:
+                knobs.runtime.launch_enter_hook = chain
 
         self._restore = restore
 

@@ -46,7 +46,7 @@ def test_one_render_dispatches_few_ops_and_never_syncs(monkeypatch):
     panorama; at 512x1024 the same operations, counted without running the interpreted kernels."""
     small, out = _count_render(16, True, monkeypatch)
     assert out.backend == "cuda" and float(out.alpha.max()) > 0.1  # it rendered something
-    assert small.kernels["_raster_fwd"] == 1 and small.kernels["_project_fwd"] == 1
+    assert sum(small.kernels.values()) == 3  # projection, pair emission, raster
     assert small.device_ops <= 20, small.summary()
     assert small.syncs == 0, small.summary()
     if DEVICE.type == "cpu":
