@@ -179,17 +179,28 @@ def report(archs=ARCHS, dtypes=("float32", "float64"), H=RENDER_HW[0], W=RENDER_
     return rows
 
 
-def report_in_subprocess(**kw) -> list[KernelStats]:
-    """:func:`report` in a fresh Python whose triton is not in interpreter mode."""
+def report_in_subprocess(archs=ARCHS, **kw) -> list[KernelStats]:
+    """:func:`report` in fresh Pythons whose triton is not in interpreter mode, one per target
+    architecture, run side by side (ptxas is single-threaded)."""
     env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
-    code = ("import json, sys; from dataclasses import asdict; from splatting.kernel_report import report; "
-            f"print(json.dumps([asdict(r) for r in report(**{kw!r})]))")
     root = Path(__file__).resolve().parents[1]
     env["PYTHONPATH"] = os.pathsep.join([str(root)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=root)
-    if out.returncode != 0:
-        raise RuntimeError(f"compile check failed:\n{out.stderr[-4000:]}")
-    return [KernelStats(**r) for r in json.loads(out.stdout.strip().splitlines()[-1])]
+    procs = []
+    for arch in archs:
+        code = ("import json; from dataclasses import asdict; from splatting.kernel_report import report; "
+                f"print(json.dumps([asdict(r) for r in report(archs=({arch},), **{kw!r})]))")
+        procs.append(subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                      text=True, env=env, cwd=root))
+    rows = []
+    for proc in procs:
+        out, err = proc.communicate()
+        if proc.returncode != 0:
+            raise RuntimeError(f"compile check failed:\n{err[-4000:]}")
+        rows += [KernelStats(**r) for r in json.loads(out.strip().splitlines()[-1])]
+    order = {"float32": 0, "float64": 1}
+    kernels = ["forward", "backward", "project (RGB)", "project (SH 3)", "emit pairs"]
+    return sorted(rows, key=lambda r: (order.get(r.dtype, 2), kernels.index(r.kernel) if r.kernel in kernels else 99,
+                                       r.arch))
 
 
 def to_markdown(rows) -> str:
