@@ -106,7 +106,7 @@ def test_split_tiles_match_cpp(monkeypatch):
     """float64 runs a tile as two programs of half its pixels on a GPU; the interpreter runs one
     program per tile unless told otherwise: run the split launch here too."""
     monkeypatch.setattr(raster_triton, "SPLIT_IN_INTERPRETER", True)
-    leaves = [p.detach().clone().requires_grad_(True) for p in _small_scene(80, seed=4, dtype=torch.float64,
+    leaves = [p.detach().clone().requires_grad_(True) for p in _small_scene(40, seed=4, dtype=torch.float64,
                                                                             shrink=1.0)]
     cam = splatting.EquirectCamera(16, 32)
     out = splatting.render(*leaves, eye().to(DEVICE), cam, backend="cuda")
@@ -123,7 +123,7 @@ def test_split_tiles_match_cpp(monkeypatch):
 def test_memory_formula_matches_allocations():
     """docs/gpu.md's peak memory: the forward's buffer list against the allocations made, and
     the measured training-step coefficients on a scene they were not measured on."""
-    n, h = 150, 20
+    n, h = 120, 16
     leaves = [t.requires_grad_(True) for t in _small_scene(n, seed=5)]
     cam = splatting.EquirectCamera(h, 2 * h)
     render_module._pixel_dirs(cam, torch.float32, DEVICE)
