@@ -62,13 +62,15 @@ class PairCapacity:
     """The pair list's capacity on one device, grown from the counts of earlier renders
     without waiting for them (see the module docstring)."""
 
-    def __init__(self, initial: int = 1 << 16, growth: float = 1.5, regrow_n: float = 1.25):
+    def __init__(self, initial: int = 1 << 16, growth: float = 1.5, regrow_n: float = 1.25, device=None):
         self.capacity = int(initial)
         self.growth = float(growth)
         self.regrow_n = float(regrow_n)
         self.sized_n = None  # Gaussian count of the last synchronous sizing (None: never sized)
         self._pending = None  # (event or None, host count, capacity used) of the render in flight
-        self._host = None
+        # the pinned buffer the counts are copied into (allocated here, not during a render)
+        cuda = device is not None and torch.device(device).type == "cuda"
+        self._host = torch.empty(1, dtype=torch.int32, pin_memory=True) if cuda else None
         self.largest_seen = 0
 
     def needs_sizing(self, n: int) -> bool:
@@ -130,7 +132,7 @@ _TILE_IDS: dict = {}
 def capacity_for(device: torch.device) -> PairCapacity:
     key = (device.type, device.index)
     if key not in _CAPACITIES:
-        _CAPACITIES[key] = PairCapacity()
+        _CAPACITIES[key] = PairCapacity(device=device)
     return _CAPACITIES[key]
 
 

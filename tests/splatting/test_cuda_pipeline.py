@@ -86,16 +86,17 @@ def test_pair_capacity_grows_without_losing_later_renders():
     cap = bin_triton.capacity_for(DEVICE)
     saved = cap.capacity
     try:
+        if DEVICE.type == "cuda":
+            torch.cuda.synchronize()  # no earlier count still in flight
         cap.poll()
         cap.reserve(0, 60)
         cap.capacity = 8  # far too small: this render misses pairs
         short = splatting.render(*params, vm, cam, backend="cuda")
         assert float((short.image.cpu() - ref.image).abs().max()) > 1e-3
+        if DEVICE.type == "cuda":
+            torch.cuda.synchronize()  # the count arrives asynchronously; here it has arrived
         with pytest.warns(RuntimeWarning, match="pair capacity 8"):
-            grown = splatting.render(*params, vm, cam, backend="cuda")  # reads the count, grows
-        if DEVICE.type == "cuda":  # the count arrives asynchronously: the render after it is exact
-            torch.cuda.synchronize()
-            grown = splatting.render(*params, vm, cam, backend="cuda")
+            grown = splatting.render(*params, vm, cam, backend="cuda")  # reads the count, grows, then renders
         assert cap.capacity >= cap.largest_seen > 8
         assert float((grown.image.cpu() - ref.image).abs().max()) <= 1e-5
     finally:
