@@ -480,6 +480,23 @@ def bench_render(
     )
 
 
+@bench_app.command("kernels")
+def bench_kernels_command(
+    out: BenchOutOpt = BENCH_OUT,
+    doc: Annotated[Optional[Path], typer.Option(
+        help="Also replace the table between the kernel-table markers of this file (docs/gpu.md).")] = None,
+) -> None:
+    """The cuda backend's Triton kernels compiled ahead of time for sm_80 and sm_90 (no GPU needed):
+    registers, spills, shared memory, SASS instructions per Gaussian-pixel pair of the inner loops."""
+    from splatting import kernel_report
+
+    try:
+        rows = kernel_report.report_in_subprocess()
+    except (ImportError, RuntimeError) as exc:
+        raise PanoError("triton", str(exc).splitlines()[0]) from None
+    kernel_report.write(rows, out / "bench_kernels.md", out / "bench_kernels.json", doc)
+
+
 @bench_app.command("train")
 def bench_train_command(
     scene: Annotated[Optional[Path], typer.Argument(help="Scene folder (default: the simulated demo scene).")] = None,

@@ -1,21 +1,25 @@
 """The ``cuda`` backend's tile rasteriser: Triton kernels, forward and backward.
 
-Projection (:func:`splatting.project.project`), sorting and binning
-(:func:`splatting.raster_torch.bin_gaussians_torch`) stay plain torch; these two
-kernels replace :class:`splatting.raster_torch.TorchRaster` and implement exactly its
-math (and the ``cpp`` kernel's): one program per tile, the tile's pixels as one block.
+Projection (splatting/project_triton.py) and binning (splatting/bin_triton.py) produce the
+packed rows and per-tile lists; these two kernels replace
+:class:`splatting.raster_torch.TorchRaster` and implement exactly its math (and the ``cpp``
+kernel's). They have the form of the CUDA rasterisers (3DGS, gsplat): the tile's pixels are the
+lanes, and the tile's list is walked one Gaussian at a time, its parameters read with scalar
+(broadcast) loads, so nothing of size Gaussians × pixels is ever held in registers. The
+reasons and the compiled numbers are in docs/gpu.md.
 
-* Forward: the tile's list is walked front to back in chunks of ``CHUNK`` Gaussians.
-  A chunk is evaluated as a [CHUNK, pixels] block; the transmittance inside the chunk
-  is a cumulative product along the Gaussian axis, so the per-Gaussian loop of the
-  CPU kernel becomes a few block operations. The program stops once every pixel of the
-  tile is saturated (T < T_MIN). It writes colour, depth, the final transmittance and,
-  per pixel, the list index of the last Gaussian blended: all the backward needs.
-* Backward (as gsplat): the list is walked back to front from the tile's last blended
-  entry; each pixel's transmittance is recovered from its final value by dividing by
-  (1 − α) (a reverse cumulative product), the colour "behind" a Gaussian is a reverse
-  cumulative sum. The per-(Gaussian, pixel) gradients are summed over the tile's
-  pixels first, then added to the Gaussian's row with one atomic add per parameter.
+* Forward: front to back; per pixel T, the colour/depth sums and the index of the last
+  Gaussian blended. The Gaussian is one ``exp2`` (the conic and the cutoff are scaled by
+  −log2 e once per Gaussian) and 1/c one ``rsqrt(c²)`` (c > 0 wherever a pixel is kept),
+  so no range fix-ups; the program checks "is any pixel of the tile unsaturated" once per
+  ``BATCH`` Gaussians and stops when none is.
+* Backward (as gsplat): back to front from the tile's last blend; each pixel's
+  transmittance is recovered by dividing by (1 − α); a Gaussian that hits no pixel of the
+  program is skipped (a uniform branch). Its 19 gradients are summed over the program's
+  pixels inside one warp (shuffles, no barrier), gathered into one vector (lane j holds
+  parameter j) and added with one relaxed atomic per lane.
+* Indices are int32 (up to 2³¹ pairs); each program is one warp; float64 splits a tile
+  over two programs so that it needs no spills (``LAUNCH``).
 
 Memory: O(Gaussians + pairs + pixels), nothing of size pixels × Gaussians.
 
@@ -41,99 +45,91 @@ except ImportError as exc:  # the backend reports it; the rest of the package wo
     triton = None
     _IMPORT_ERROR = exc
 
-CHUNK = 16  # Gaussians evaluated at once per tile (rows of the [CHUNK, pixels] block)
+BATCH = 32  # forward: Gaussians walked between two "is any pixel of the tile still unsaturated" votes
+# (warps per program, programs per tile) by kernel and element size. One warp per program: the
+# backward's per-Gaussian sums over pixels are shuffles, never a barrier. float32: one program per
+# 16x16 tile (8 pixels per thread, so the 20 broadcast loads of a Gaussian are shared by 8 pairs);
+# float64 values take two registers each, so a tile is split over two programs (4 pixels per thread)
+# to stay free of spills. docs/gpu.md has the comparison of the alternatives.
+LAUNCH = {("forward", 4): (1, 1), ("forward", 8): (1, 2), ("backward", 4): (1, 1), ("backward", 8): (1, 2)}
+SPLIT_IN_INTERPRETER = False  # a test sets it to run the split launches in the interpreter too
 
 if triton is not None:
     _ALPHA_MAX = tl.constexpr(ALPHA_MAX)
     _C_MIN = tl.constexpr(C_MIN)
     _T_MIN = tl.constexpr(T_MIN)
     _PACK = tl.constexpr(PACK)
+    _NLOG2E = tl.constexpr(-1.4426950408889634)  # −log2(e): exp(−x) = exp2(−x·log2 e)
+    _NHALF_LOG2E = tl.constexpr(-0.7213475204444817)
+
+    # Reductions over the pixel axis, spelled as the `tl.reduce` that `tl.sum` / `tl.max` wrap:
+    # compiled, the same code; interpreted, no per-call re-patching of triton.language (each
+    # jit-function call costs the interpreter ~1 ms, 20 of them per Gaussian in the backward).
+    from triton.language.standard import _elementwise_max, _sum_combine
 
     @triton.jit
-    def _tile_pixels(tile, H, W, TS, BLOCK_PIX: tl.constexpr):
-        """Flat pixel index of each slot of the tile and whether it is inside the image."""
+    def _tile_pixels(pid, H, W, TS, SPLIT: tl.constexpr, BLOCK_PIX: tl.constexpr):
+        """The tile of program ``pid`` (SPLIT programs share a tile, each a slice of its pixels):
+        the tile, the flat pixel index of each slot and whether it is inside the image (int32)."""
+        tile = pid // SPLIT
         ntx = (W + TS - 1) // TS
-        i = tl.arange(0, BLOCK_PIX)
+        i = (pid % SPLIT) * BLOCK_PIX + tl.arange(0, BLOCK_PIX)
         row = (tile // ntx) * TS + i // TS
         col = (tile % ntx) * TS + i % TS
         ok = (i < TS * TS) & (row < H) & (col < W)
-        return row * W + col, ok
+        return tile, row * W + col, ok
 
     @triton.jit
-    def _splat_eval(P, g, gok, dx, dy, dz, pok):
-        """Evaluate a chunk of Gaussians (rows of packed ``P`` at indices ``g``) at the
-        tile's pixels (ray directions ``dx, dy, dz``): tangent-plane offsets u, v, the
-        power, 1/c and ``keep`` (in front of the plane and inside the cutoff),
-        all [CHUNK, pixels]. Layout of P: splatting/project.py."""
-        row = P + g * _PACK
-        c = (tl.load(row + 6, mask=gok, other=0)[:, None] * dx[None, :]
-             + tl.load(row + 7, mask=gok, other=0)[:, None] * dy[None, :]
-             + tl.load(row + 8, mask=gok, other=0)[:, None] * dz[None, :])
-        ok = gok[:, None] & pok[None, :] & (c > _C_MIN)
-        ic = 1.0 / tl.where(ok, c, 1.0)
-        h0 = (tl.load(row + 0, mask=gok, other=0)[:, None] * dx[None, :]
-              + tl.load(row + 1, mask=gok, other=0)[:, None] * dy[None, :]
-              + tl.load(row + 2, mask=gok, other=0)[:, None] * dz[None, :])
-        h1 = (tl.load(row + 3, mask=gok, other=0)[:, None] * dx[None, :]
-              + tl.load(row + 4, mask=gok, other=0)[:, None] * dy[None, :]
-              + tl.load(row + 5, mask=gok, other=0)[:, None] * dz[None, :])
-        u = h0 * ic - tl.load(row + 9, mask=gok, other=0)[:, None]
-        v = h1 * ic - tl.load(row + 10, mask=gok, other=0)[:, None]
-        q00 = tl.load(row + 11, mask=gok, other=0)[:, None]
-        q01 = tl.load(row + 12, mask=gok, other=0)[:, None]
-        q11 = tl.load(row + 13, mask=gok, other=0)[:, None]
-        power = 0.5 * (q00 * u * u + q11 * v * v) + q01 * u * v
-        keep = ok & (power <= tl.load(row + 19, mask=gok, other=0)[:, None])
-        return u, v, power, ic, keep
-
-    @triton.jit
-    def _raster_fwd(P, dirs, toff, tlist, out_color, out_depth, out_T, out_last, H, W, TS,
-                    CHUNK: tl.constexpr, BLOCK_PIX: tl.constexpr):
-        tile = tl.program_id(0)
-        pix, pok = _tile_pixels(tile, H, W, TS, BLOCK_PIX)
+    def _raster_fwd(P, dirs, toff, tlist, out_color, out_depth, out_T, out_last, npx, H, W, TS,
+                    BATCH: tl.constexpr, SPLIT: tl.constexpr, BLOCK_PIX: tl.constexpr):
+        tile, pix, pok = _tile_pixels(tl.program_id(0), H, W, TS, SPLIT, BLOCK_PIX)
+        # pixels outside the image get d = 0, hence c = 0: never kept, no mask needed in the loop
         dx = tl.load(dirs + pix * 3, mask=pok, other=0)
         dy = tl.load(dirs + pix * 3 + 1, mask=pok, other=0)
         dz = tl.load(dirs + pix * 3 + 2, mask=pok, other=0)
-        zero = dx * 0  # the working dtype (float32 or float64)
-        T = zero + 1.0
-        acc_r, acc_g, acc_b, acc_d = zero, zero, zero, zero
-        last = tl.full((BLOCK_PIX,), -1, tl.int64)
+        T = dx * 0 + 1.0  # in the working dtype (float32 or float64)
+        acc_r, acc_g, acc_b, acc_d = T * 0, T * 0, T * 0, T * 0
+        last = tl.full((BLOCK_PIX,), -1, tl.int32)
         k0 = tl.load(toff + tile)
         end = tl.load(toff + tile + 1)
-        live = tl.sum((pok & (T >= _T_MIN)).to(tl.int32), axis=0)  # pixels not yet saturated
+        live = 1
+        # batches of Gaussians, with one "is any pixel still unsaturated" vote per batch
         while (k0 < end) & (live > 0):
-            k = k0 + tl.arange(0, CHUNK)
-            gok = k < end
-            g = tl.load(tlist + k, mask=gok, other=0)
-            u, v, power, ic, keep = _splat_eval(P, g, gok, dx, dy, dz, pok)
-            row = P + g * _PACK
-            oG = tl.load(row + 14, mask=gok, other=0)[:, None] * tl.exp(-tl.where(keep, power, 0.0))
-            alpha = tl.where(keep, tl.minimum(oG, _ALPHA_MAX), 0.0)
-            # transmittance before (Texcl) and after (Tincl) each Gaussian of the chunk
-            Tincl = T[None, :] * tl.cumprod(1.0 - alpha, axis=0)
-            Texcl = Tincl / (1.0 - alpha)
-            inc = keep & (Texcl >= _T_MIN)  # a prefix of the chunk: Texcl only decreases
-            w = tl.where(inc, alpha * Texcl, 0.0)
-            acc_r += tl.sum(w * tl.load(row + 15, mask=gok, other=0)[:, None], axis=0)
-            acc_g += tl.sum(w * tl.load(row + 16, mask=gok, other=0)[:, None], axis=0)
-            acc_b += tl.sum(w * tl.load(row + 17, mask=gok, other=0)[:, None], axis=0)
-            acc_d += tl.sum(w * tl.load(row + 18, mask=gok, other=0)[:, None], axis=0)
-            T = tl.min(tl.where(inc, Tincl, T[None, :]), axis=0)
-            last = tl.maximum(last, tl.max(tl.where(inc, k[:, None], -1), axis=0))
-            live = tl.sum((pok & (T >= _T_MIN)).to(tl.int32), axis=0)
-            k0 += CHUNK
+            for k in range(k0, tl.minimum(k0 + BATCH, end)):
+                # one Gaussian: scalar loads (every lane reads the same address), per-pixel math
+                row = P + tl.load(tlist + k) * _PACK
+                c = tl.load(row + 6) * dx + tl.load(row + 7) * dy + tl.load(row + 8) * dz
+                ic = tl.math.rsqrt(c * c)  # = 1/c where c > 0, the only pixels kept (one MUFU, no range fix-up)
+                u = (tl.load(row + 0) * dx + tl.load(row + 1) * dy + tl.load(row + 2) * dz) * ic - tl.load(row + 9)
+                v = (tl.load(row + 3) * dx + tl.load(row + 4) * dy + tl.load(row + 5) * dz) * ic - tl.load(row + 10)
+                # e = −power·log2(e): the conic and the cutoff scaled once per Gaussian, so that the
+                # Gaussian is one exp2 and the cutoff test one compare
+                e = ((tl.load(row + 11) * _NHALF_LOG2E) * u + (tl.load(row + 12) * _NLOG2E) * v) * u \
+                    + (tl.load(row + 13) * _NHALF_LOG2E) * (v * v)
+                keep = (c > _C_MIN) & (e >= tl.load(row + 19) * _NLOG2E)
+                alpha = tl.minimum(tl.load(row + 14) * tl.exp2(e), _ALPHA_MAX)
+                inc = keep & (T >= _T_MIN)  # a pixel stops after the Gaussian that saturates it
+                w = tl.where(inc, alpha * T, 0.0)
+                acc_r += w * tl.load(row + 15)
+                acc_g += w * tl.load(row + 16)
+                acc_b += w * tl.load(row + 17)
+                acc_d += w * tl.load(row + 18)
+                T -= w
+                last = tl.where(inc, k, last)
+            live = tl.reduce((T >= _T_MIN).to(tl.int32), 0, _elementwise_max)
+            k0 += BATCH
         tl.store(out_color + pix * 3, acc_r, mask=pok)
         tl.store(out_color + pix * 3 + 1, acc_g, mask=pok)
         tl.store(out_color + pix * 3 + 2, acc_b, mask=pok)
         tl.store(out_depth + pix, acc_d, mask=pok)
         tl.store(out_T + pix, T, mask=pok)
+        tl.store(out_T + npx + pix, 1.0 - T, mask=pok)  # the alpha channel, in the same buffer
         tl.store(out_last + pix, last, mask=pok)
 
     @triton.jit
     def _raster_bwd(P, dirs, toff, tlist, T_final, last_k, g_color, g_depth, g_alpha, gP, H, W, TS,
-                    CHUNK: tl.constexpr, BLOCK_PIX: tl.constexpr):
-        tile = tl.program_id(0)
-        pix, pok = _tile_pixels(tile, H, W, TS, BLOCK_PIX)
+                    SPLIT: tl.constexpr, BLOCK_PIX: tl.constexpr):
+        tile, pix, pok = _tile_pixels(tl.program_id(0), H, W, TS, SPLIT, BLOCK_PIX)
         dx = tl.load(dirs + pix * 3, mask=pok, other=0)
         dy = tl.load(dirs + pix * 3 + 1, mask=pok, other=0)
         dz = tl.load(dirs + pix * 3 + 2, mask=pok, other=0)
@@ -142,74 +138,73 @@ if triton is not None:
         gCb = tl.load(g_color + pix * 3 + 2, mask=pok, other=0)
         gD = tl.load(g_depth + pix, mask=pok, other=0)
         gA = tl.load(g_alpha + pix, mask=pok, other=0)
-        T = tl.load(T_final + pix, mask=pok, other=1)  # transmittance behind the current chunk
+        T = tl.load(T_final + pix, mask=pok, other=1)  # transmittance behind the current Gaussian
         last = tl.load(last_k + pix, mask=pok, other=-1)
         behind = dx * 0  # Σ_{j behind} w_j x_j of the Gaussians already visited
         start = tl.load(toff + tile)
-        end = tl.load(toff + tile + 1)
-        kmax = tl.max(last, axis=0)
-        k0 = start + ((kmax - start) // CHUNK) * CHUNK  # the chunk holding the tile's last blend
-        while (k0 >= start) & (kmax >= start):
-            k = k0 + tl.arange(0, CHUNK)
-            gok = k < end
-            g = tl.load(tlist + k, mask=gok, other=0)
-            row = P + g * _PACK
-            u, v, power, ic, keep = _splat_eval(P, g, gok, dx, dy, dz, pok)
-            hit = keep & (k[:, None] <= last[None, :])
-            G = tl.exp(-tl.where(hit, power, 0.0))
-            oG = tl.load(row + 14, mask=gok, other=0)[:, None] * G
-            alpha = tl.where(hit, tl.minimum(oG, _ALPHA_MAX), 0.0)
-            ioma = 1.0 / (1.0 - alpha)
-            Texcl = T[None, :] * tl.cumprod(ioma, axis=0, reverse=True)
-            w = alpha * Texcl
-            cr = tl.load(row + 15, mask=gok, other=0)[:, None]
-            cg = tl.load(row + 16, mask=gok, other=0)[:, None]
-            cb = tl.load(row + 17, mask=gok, other=0)[:, None]
-            dist = tl.load(row + 18, mask=gok, other=0)[:, None]
-            # dL/d(contribution) of the Gaussian at the pixel: colour, depth and alpha terms
-            x = cr * gCr[None, :] + cg * gCg[None, :] + cb * gCb[None, :] + dist * gD[None, :] + gA[None, :]
-            wx = tl.where(hit, w * x, 0.0)
-            wx_behind = behind[None, :] + (tl.cumsum(wx, axis=0, reverse=True) - wx)
-            dLda = Texcl * x - wx_behind * ioma
-            # no gradient through the 0.99 clamp (docs/splatting.md)
-            free = hit & (oG < _ALPHA_MAX)
-            dpow = tl.where(free, -oG * dLda, 0.0)
-            q00 = tl.load(row + 11, mask=gok, other=0)[:, None]
-            q01 = tl.load(row + 12, mask=gok, other=0)[:, None]
-            q11 = tl.load(row + 13, mask=gok, other=0)[:, None]
-            du = dpow * (q00 * u + q01 * v)
-            dv = dpow * (q01 * u + q11 * v)
-            dh0 = du * ic
-            dh1 = dv * ic
-            # h0 = (u + uc)·c, h1 = (v + vc)·c
-            dc = -(dh0 * (u + tl.load(row + 9, mask=gok, other=0)[:, None])
-                   + dh1 * (v + tl.load(row + 10, mask=gok, other=0)[:, None]))
-            # sums over the tile's pixels, then one atomic add per parameter
-            out = gP + g * _PACK
-            upd = gok & (tl.sum(hit.to(tl.int32), axis=1) > 0)
-            tl.atomic_add(out + 0, tl.sum(dh0 * dx[None, :], axis=1), mask=upd)
-            tl.atomic_add(out + 1, tl.sum(dh0 * dy[None, :], axis=1), mask=upd)
-            tl.atomic_add(out + 2, tl.sum(dh0 * dz[None, :], axis=1), mask=upd)
-            tl.atomic_add(out + 3, tl.sum(dh1 * dx[None, :], axis=1), mask=upd)
-            tl.atomic_add(out + 4, tl.sum(dh1 * dy[None, :], axis=1), mask=upd)
-            tl.atomic_add(out + 5, tl.sum(dh1 * dz[None, :], axis=1), mask=upd)
-            tl.atomic_add(out + 6, tl.sum(dc * dx[None, :], axis=1), mask=upd)
-            tl.atomic_add(out + 7, tl.sum(dc * dy[None, :], axis=1), mask=upd)
-            tl.atomic_add(out + 8, tl.sum(dc * dz[None, :], axis=1), mask=upd)
-            tl.atomic_add(out + 9, -tl.sum(du, axis=1), mask=upd)
-            tl.atomic_add(out + 10, -tl.sum(dv, axis=1), mask=upd)
-            tl.atomic_add(out + 11, tl.sum(0.5 * dpow * u * u, axis=1), mask=upd)
-            tl.atomic_add(out + 12, tl.sum(dpow * u * v, axis=1), mask=upd)
-            tl.atomic_add(out + 13, tl.sum(0.5 * dpow * v * v, axis=1), mask=upd)
-            tl.atomic_add(out + 14, tl.sum(tl.where(free, G * dLda, 0.0), axis=1), mask=upd)
-            tl.atomic_add(out + 15, tl.sum(w * gCr[None, :], axis=1), mask=upd)
-            tl.atomic_add(out + 16, tl.sum(w * gCg[None, :], axis=1), mask=upd)
-            tl.atomic_add(out + 17, tl.sum(w * gCb[None, :], axis=1), mask=upd)
-            tl.atomic_add(out + 18, tl.sum(w * gD[None, :], axis=1), mask=upd)
-            behind += tl.sum(wx, axis=0)
-            T = tl.max(Texcl, axis=0)  # = the chunk's first row: ioma >= 1, so the products only grow
-            k0 -= CHUNK
-
+        kmax = tl.reduce(last, 0, _elementwise_max)
+        # from the last blend of the program's pixels back to the tile's first entry
+        for i in range(0, kmax - start + 1):
+            k = kmax - i
+            row = P + tl.load(tlist + k) * _PACK
+            c = tl.load(row + 6) * dx + tl.load(row + 7) * dy + tl.load(row + 8) * dz
+            front = c > _C_MIN
+            ic = tl.where(front, tl.math.rsqrt(c * c), 0.0)  # 0 behind the plane: every product below stays finite
+            p0 = (tl.load(row + 0) * dx + tl.load(row + 1) * dy + tl.load(row + 2) * dz) * ic
+            p1 = (tl.load(row + 3) * dx + tl.load(row + 4) * dy + tl.load(row + 5) * dz) * ic
+            u = p0 - tl.load(row + 9)
+            v = p1 - tl.load(row + 10)
+            q00 = tl.load(row + 11)
+            q01 = tl.load(row + 12)
+            q11 = tl.load(row + 13)
+            e = ((q00 * _NHALF_LOG2E) * u + (q01 * _NLOG2E) * v) * u + (q11 * _NHALF_LOG2E) * (v * v)
+            hit = front & (e >= tl.load(row + 19) * _NLOG2E) & (k <= last)
+            if tl.reduce(hit.to(tl.int32), 0, _elementwise_max) > 0:  # uniform: skip a Gaussian missing every pixel
+                G = tl.exp2(e)
+                oG = tl.load(row + 14) * G
+                alpha = tl.where(hit, tl.minimum(oG, _ALPHA_MAX), 0.0)
+                ra = tl.math.rsqrt((1.0 - alpha) * (1.0 - alpha))  # 1/(1 − α), α ≤ 0.99
+                T = T * ra  # the transmittance in front of this Gaussian
+                w = alpha * T
+                # dL/d(contribution) of the Gaussian at the pixel: colour, depth and alpha terms
+                x = tl.load(row + 15) * gCr + tl.load(row + 16) * gCg + tl.load(row + 17) * gCb \
+                    + tl.load(row + 18) * gD + gA
+                dLda = T * x - behind * ra
+                behind += w * x
+                # no gradient through the 0.99 clamp (docs/splatting.md)
+                free = hit & (oG < _ALPHA_MAX)
+                dpow = tl.where(free, -oG * dLda, 0.0)
+                a = dpow * u
+                b = dpow * v
+                du = q00 * a + q01 * b
+                dv = q01 * a + q11 * b
+                dh0 = du * ic
+                dh1 = dv * ic
+                dc = -(dh0 * p0 + dh1 * p1)  # h = (u + uc)·c
+                # sums over the program's pixels (one warp: shuffles, no barrier), gathered into one
+                # vector (lane j holds parameter j) and added with one relaxed atomic per lane (no fence:
+                # nothing reads gP before the kernel ends)
+                j = tl.arange(0, 32)
+                grad = tl.where(j == 0, tl.reduce(dh0 * dx, 0, _sum_combine), 0.0)
+                grad = tl.where(j == 1, tl.reduce(dh0 * dy, 0, _sum_combine), grad)
+                grad = tl.where(j == 2, tl.reduce(dh0 * dz, 0, _sum_combine), grad)
+                grad = tl.where(j == 3, tl.reduce(dh1 * dx, 0, _sum_combine), grad)
+                grad = tl.where(j == 4, tl.reduce(dh1 * dy, 0, _sum_combine), grad)
+                grad = tl.where(j == 5, tl.reduce(dh1 * dz, 0, _sum_combine), grad)
+                grad = tl.where(j == 6, tl.reduce(dc * dx, 0, _sum_combine), grad)
+                grad = tl.where(j == 7, tl.reduce(dc * dy, 0, _sum_combine), grad)
+                grad = tl.where(j == 8, tl.reduce(dc * dz, 0, _sum_combine), grad)
+                grad = tl.where(j == 9, -tl.reduce(du, 0, _sum_combine), grad)
+                grad = tl.where(j == 10, -tl.reduce(dv, 0, _sum_combine), grad)
+                grad = tl.where(j == 11, 0.5 * tl.reduce(a * u, 0, _sum_combine), grad)
+                grad = tl.where(j == 12, tl.reduce(a * v, 0, _sum_combine), grad)
+                grad = tl.where(j == 13, 0.5 * tl.reduce(b * v, 0, _sum_combine), grad)
+                grad = tl.where(j == 14, tl.reduce(tl.where(free, G * dLda, 0.0), 0, _sum_combine), grad)
+                grad = tl.where(j == 15, tl.reduce(w * gCr, 0, _sum_combine), grad)
+                grad = tl.where(j == 16, tl.reduce(w * gCg, 0, _sum_combine), grad)
+                grad = tl.where(j == 17, tl.reduce(w * gCb, 0, _sum_combine), grad)
+                grad = tl.where(j == 18, tl.reduce(w * gD, 0, _sum_combine), grad)
+                tl.atomic_add(gP + tl.load(tlist + k) * _PACK + j, grad, mask=j < _PACK - 1, sem="relaxed")
 
 def _interpreter_state():
     """(our kernels are interpreted, triton's library functions are interpreted)."""
@@ -239,30 +234,67 @@ def unavailable_reason(device: torch.device):
             "triton to run its kernels on the CPU in the Triton interpreter")
 
 
-def _grid_args(H, W, ts):
+def _config(kernel, H, W, ts, element_size):
+    """grid, BLOCK_PIX and launch options of ``kernel`` ("forward" or "backward")."""
+    warps, split = LAUNCH[(kernel, element_size)]
+    if _INTERPRETED and not SPLIT_IN_INTERPRETER:
+        split = 1  # the interpreter's cost is per operation, not per pixel: one program per tile
     ntiles = ((W + ts - 1) // ts) * ((H + ts - 1) // ts)
-    return (ntiles,), triton.next_power_of_2(ts * ts)
+    block = max(1, triton.next_power_of_2(ts * ts) // split)
+    return (ntiles * split,), dict(SPLIT=split, BLOCK_PIX=block, num_warps=warps)
+
+
+def pairs_per_trip(kernel: str, ts: int, element_size: int) -> float:
+    """Gaussian–pixel pairs one trip of the kernel's inner loop (one Gaussian) evaluates per
+    thread; for the SASS count of splatting/kernel_report.py."""
+    warps, split = LAUNCH[(kernel, element_size)]
+    return max(1, triton.next_power_of_2(ts * ts) // split) / (32 * warps)
+
+
+def forward_launch(P, dirs, toff, tlist, color, depth, T_alpha, last, H, W, ts):
+    """(kernel, grid, args, constexprs and launch options) of the forward: the one place the
+    launch is spelled out, used by :class:`TritonRaster` and by the compile check
+    (splatting/kernel_report.py), so the check compiles what runs."""
+    grid, options = _config("forward", H, W, ts, P.element_size())
+    return (_raster_fwd, grid, (P, dirs, toff, tlist, color, depth, T_alpha, last, H * W, H, W, ts),
+            dict(BATCH=BATCH, **options))
+
+
+def backward_launch(P, dirs, toff, tlist, T_final, last, g_color, g_depth, g_alpha, gP, H, W, ts):
+    """As :func:`forward_launch`, for the backward."""
+    grid, options = _config("backward", H, W, ts, P.element_size())
+    return (_raster_bwd, grid, (P, dirs, toff, tlist, T_final, last, g_color, g_depth, g_alpha, gP, H, W, ts),
+            options)
+
+
+def _launch(kernel, grid, args, options):
+    kernel[grid](*args, **options)
+
+
+def _index32(t):
+    return t if t.dtype == torch.int32 else t.to(torch.int32)
 
 
 class TritonRaster(torch.autograd.Function):
-    """Same interface and math as :class:`splatting.raster_torch.TorchRaster`."""
+    """Same interface and math as :class:`splatting.raster_torch.TorchRaster`; the tile offsets
+    and lists may be int64 (``bin_gaussians_torch``) or int32 (what the kernels index with)."""
 
     @staticmethod
     def forward(ctx, P, dirs, toff, tlist, H, W, ts):
         dtype, device = P.dtype, P.device
         P = P.contiguous()
         dirs = dirs.to(dtype).contiguous()
+        toff, tlist = _index32(toff), _index32(tlist)
         npx = H * W
-        color = torch.zeros(npx, 3, dtype=dtype, device=device)
-        depth = torch.zeros(npx, dtype=dtype, device=device)
-        T_final = torch.ones(npx, dtype=dtype, device=device)
-        last = torch.full((npx,), -1, dtype=torch.int64, device=device)
-        grid, block_pix = _grid_args(H, W, ts)
-        _raster_fwd[grid](P, dirs, toff, tlist, color, depth, T_final, last, H, W, ts,
-                          CHUNK=CHUNK, BLOCK_PIX=block_pix)
-        ctx.save_for_backward(P, dirs, toff, tlist, T_final, last)
+        # every pixel belongs to exactly one tile program, which writes all four outputs
+        color = torch.empty(npx, 3, dtype=dtype, device=device)
+        depth = torch.empty(npx, dtype=dtype, device=device)
+        T_alpha = torch.empty(2, npx, dtype=dtype, device=device)  # final transmittance, 1 − it
+        last = torch.empty(npx, dtype=torch.int32, device=device)
+        _launch(*forward_launch(P, dirs, toff, tlist, color, depth, T_alpha, last, H, W, ts))
+        ctx.save_for_backward(P, dirs, toff, tlist, T_alpha[0], last)
         ctx.dims = (H, W, ts)
-        return color.reshape(H, W, 3), depth.reshape(H, W), (1.0 - T_final).reshape(H, W)
+        return color.reshape(H, W, 3), depth.reshape(H, W), T_alpha[1].reshape(H, W)
 
     @staticmethod
     def backward(ctx, g_color, g_depth, g_alpha):
@@ -276,8 +308,7 @@ class TritonRaster(torch.autograd.Function):
             return g.to(dtype).reshape(shape).contiguous()
 
         gP = torch.zeros_like(P)
-        grid, block_pix = _grid_args(H, W, ts)
-        _raster_bwd[grid](P, dirs, toff, tlist, T_final, last, grad_or_zeros(g_color, (H * W, 3)),
-                          grad_or_zeros(g_depth, (H * W,)), grad_or_zeros(g_alpha, (H * W,)), gP, H, W, ts,
-                          CHUNK=CHUNK, BLOCK_PIX=block_pix)
+        _launch(*backward_launch(P, dirs, toff, tlist, T_final, last, grad_or_zeros(g_color, (H * W, 3)),
+                                 grad_or_zeros(g_depth, (H * W,)), grad_or_zeros(g_alpha, (H * W,)), gP, H, W, ts))
         return gP, None, None, None, None, None, None
+

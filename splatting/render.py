@@ -128,25 +128,54 @@ def render(
             image = image + (1.0 - alpha)[..., None] * bg
         return RenderOutput(image=image, alpha=alpha, depth=depth, means2d=means2d, radii=radii, visible=visible,
                             backend=backend)
-    proj = project(
-        means, quats.to(dtype), scales.to(dtype), opacities.to(dtype), _color_fn(colors.to(dtype), sh_degree, N),
-        viewmat, camera, eps2d, near, extra_grad=extra,
-    )
-    dirs = camera.pixel_dirs(dtype=dtype, device=device)
+    dirs = _pixel_dirs(camera, dtype, device)
     ts = int(tile_size)
-    toff, tlist = bin_gaussians_torch(proj.bbox, proj.packed[:, 18].detach(), H, W, ts)
     if backend == "cuda":
-        from .raster_triton import TritonRaster as raster
+        # projection and binning in Triton kernels: a fixed handful of launches, no host sync
+        from .bin_triton import bin_gaussians
+        from .project_triton import project_gaussians
+        from .raster_triton import TritonRaster
+
+        colors = colors.to(dtype)
+        _color_fn(colors, sh_degree, N)  # shape checks
+        if colors.dim() == 3 and sh_degree is None:
+            sh_degree = int(round(math.sqrt(colors.shape[1]))) - 1
+        packed, ints, visible, means2d = project_gaussians(
+            means, quats.to(dtype), scales.to(dtype), opacities.to(dtype), colors, viewmat, camera, eps2d, near,
+            sh_degree, ts, _color_fn)
+        toff, tlist, _ = bin_gaussians(ints, packed[:, 18].detach(), H, W, ts)
+        color, depth, alpha = TritonRaster.apply(packed, dirs, toff, tlist, H, W, ts)
+        radii = ints[:, 5]
     else:
-        raster = TorchRaster
-    color, depth, alpha = raster.apply(proj.packed, dirs, toff, tlist, H, W, ts)
+        proj = project(
+            means, quats.to(dtype), scales.to(dtype), opacities.to(dtype), _color_fn(colors.to(dtype), sh_degree, N),
+            viewmat, camera, eps2d, near, extra_grad=extra,
+        )
+        toff, tlist = bin_gaussians_torch(proj.bbox, proj.packed[:, 18].detach(), H, W, ts)
+        color, depth, alpha = TorchRaster.apply(proj.packed, dirs, toff, tlist, H, W, ts)
+        means2d, radii, visible = proj.means2d, proj.radii, proj.visible
     if background is not None:
         bg = torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
         image = color + (1.0 - alpha)[..., None] * bg
     else:
         image = color
-    return RenderOutput(image=image, alpha=alpha, depth=depth, means2d=proj.means2d, radii=proj.radii,
-                        visible=proj.visible, backend=backend)
+    return RenderOutput(image=image, alpha=alpha, depth=depth, means2d=means2d, radii=radii, visible=visible,
+                        backend=backend)
+
+
+_DIRS_CACHE: dict = {}
+
+
+def _pixel_dirs(camera, dtype, device):
+    """The camera's pixel ray directions, computed once per (camera, dtype, device): a render
+    then dispatches no per-frame work for them."""
+    key = (camera, dtype, str(device))
+    dirs = _DIRS_CACHE.get(key)
+    if dirs is None:
+        if len(_DIRS_CACHE) >= 16:
+            _DIRS_CACHE.clear()
+        dirs = _DIRS_CACHE[key] = camera.pixel_dirs(dtype=dtype, device=device)
+    return dirs
 
 
 def _render_cpp(means, quats, scales, opacities, colors, sh_degree, viewmat, camera, eps2d, near, ts, extra):

@@ -1,0 +1,142 @@
+"""The `cuda` backend as a whole: what one render dispatches to the device (and that it never
+waits for it), the pair capacity of the sync-free binning, the float64 launch that splits a
+tile over two programs, and the memory formula of docs/gpu.md. Without CUDA everything runs
+on CPU tensors in the Triton interpreter, where the dispatched operations are those a GPU
+render would issue."""
+
+import importlib
+import warnings
+
+import pytest
+import torch
+
+pytest.importorskip("triton")
+
+import splatting  # noqa: E402
+from splatting import bin_triton, gpu_memory, raster_triton  # noqa: E402
+from splatting.dispatch_count import AllocationTracker, DispatchCounter  # noqa: E402
+from splat_helpers import eye, random_scene  # noqa: E402
+
+pytestmark = pytest.mark.cuda
+DEVICE = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+render_module = importlib.import_module("splatting.render")
+
+
+def _small_scene(n, seed, dtype=torch.float32, shrink=0.1):
+    m, q, s, o, c = random_scene(n, seed=seed, dtype=dtype)
+    return [t.to(DEVICE) for t in (m, q, s * shrink, o, c)]
+
+
+def _count_render(height, run_kernels, monkeypatch):
+    m, q, s, o, _ = _small_scene(4, seed=1)
+    sh = torch.randn(4, 16, 3, generator=torch.Generator().manual_seed(2)).to(DEVICE) * 0.3
+    cam = splatting.EquirectCamera(height, 2 * height)
+    vm = eye(torch.float32).to(DEVICE)
+    render_module._pixel_dirs(cam, torch.float32, DEVICE)  # the cached per-camera directions
+    monkeypatch.setattr(bin_triton, "_CAPACITIES", {})  # a dry run's pair count must not size later renders
+    bin_triton.capacity_for(DEVICE).reserve(1 << 12, 4)  # sized: the first render's one sync is not counted
+    with DispatchCounter(run_kernels=run_kernels) as counter:
+        out = splatting.render(m, q, s, o, sh, vm, cam, backend="cuda")
+    return counter, out
+
+
+def test_one_render_dispatches_few_ops_and_never_syncs(monkeypatch):
+    """SH colours: projection, sort, binning and raster in <= 20 device operations, none of which
+    makes the host wait (no nonzero, .item() or data-dependent shape). Run for real on a small
+    panorama; at 512x1024 the same operations, counted without running the interpreted kernels."""
+    small, out = _count_render(16, True, monkeypatch)
+    assert out.backend == "cuda" and float(out.alpha.max()) > 0.1  # it rendered something
+    assert sum(small.kernels.values()) == 3  # projection, pair emission, raster
+    assert small.device_ops <= 20, small.summary()
+    assert small.syncs == 0, small.summary()
+    if DEVICE.type == "cpu":
+        full, _ = _count_render(512, False, monkeypatch)
+        assert full.ops == small.ops and full.kernels == small.kernels, (full.summary(), small.summary())
+
+
+def test_first_render_sizes_the_pair_list_once(monkeypatch):
+    """The capacity is read once (one sync), then never again until the scene grows by a quarter."""
+    monkeypatch.setattr(bin_triton, "_CAPACITIES", {})
+    params = _small_scene(30, seed=6, shrink=1.0)
+    vm, cam = eye(torch.float32).to(DEVICE), splatting.EquirectCamera(8, 16)
+    with DispatchCounter() as first:
+        splatting.render(*params, vm, cam, backend="cuda")
+    with DispatchCounter() as second:
+        splatting.render(*params, vm, cam, backend="cuda")
+    assert first.syncs == 1 and second.syncs == 0, (first.summary(), second.summary())
+    cap = bin_triton.capacity_for(DEVICE)
+    assert cap.capacity > cap.largest_seen > 0 and cap.sized_n == 30
+    assert cap.needs_sizing(40) and not cap.needs_sizing(37)
+
+
+def test_reference_projection_counts_as_syncing():
+    """The counter is not blind: the torch backend's projection compacts with nonzero."""
+    m, q, s, o, c = _small_scene(4, seed=1)
+    with DispatchCounter() as counter:
+        splatting.render(m, q, s, o, c, eye(torch.float32).to(DEVICE), splatting.EquirectCamera(8, 16),
+                         backend="torch")
+    assert counter.sync_ops["nonzero"] >= 1 and counter.device_ops > 100
+
+
+def test_pair_capacity_grows_without_losing_later_renders():
+    params = _small_scene(60, seed=3, dtype=torch.float64, shrink=1.0)
+    cam = splatting.EquirectCamera(16, 32)
+    vm = eye().to(DEVICE)
+    ref = splatting.render(*[p.cpu() for p in params], vm.cpu(), cam, backend="cpp")
+    cap = bin_triton.capacity_for(DEVICE)
+    saved = cap.capacity
+    try:
+        if DEVICE.type == "cuda":
+            torch.cuda.synchronize()  # no earlier count still in flight
+        cap.poll()
+        cap.reserve(0, 60)
+        cap.capacity = 8  # far too small: this render misses pairs
+        short = splatting.render(*params, vm, cam, backend="cuda")
+        assert float((short.image.cpu() - ref.image).abs().max()) > 1e-3
+        if DEVICE.type == "cuda":
+            torch.cuda.synchronize()  # the count arrives asynchronously; here it has arrived
+        with pytest.warns(RuntimeWarning, match="pair capacity 8"):
+            grown = splatting.render(*params, vm, cam, backend="cuda")  # reads the count, grows, then renders
+        assert cap.capacity >= cap.largest_seen > 8
+        assert float((grown.image.cpu() - ref.image).abs().max()) <= 1e-5
+    finally:
+        cap.capacity = max(saved, cap.capacity)
+
+
+def test_split_tiles_match_cpp(monkeypatch):
+    """float64 runs a tile as two programs of half its pixels on a GPU; the interpreter runs one
+    program per tile unless told otherwise: run the split launch here too."""
+    monkeypatch.setattr(raster_triton, "SPLIT_IN_INTERPRETER", True)
+    leaves = [p.detach().clone().requires_grad_(True) for p in _small_scene(40, seed=4, dtype=torch.float64,
+                                                                            shrink=1.0)]
+    cam = splatting.EquirectCamera(16, 32)
+    out = splatting.render(*leaves, eye().to(DEVICE), cam, backend="cuda")
+    (out.image.sum() + out.alpha.sum()).backward()
+    ref_leaves = [p.detach().cpu().requires_grad_(True) for p in leaves]
+    ref = splatting.render(*ref_leaves, eye(), cam, backend="cpp")
+    (ref.image.sum() + ref.alpha.sum()).backward()
+    assert float((out.image.detach().cpu() - ref.image.detach()).abs().max()) <= 1e-5
+    for a, r in zip(leaves, ref_leaves):
+        assert float((a.grad.cpu() - r.grad).abs().max()) <= 1e-4 * float(r.grad.abs().max()) + 1e-12
+
+
+@pytest.mark.skipif(DEVICE.type == "cuda", reason="tracks allocations of CPU tensors (the interpreter)")
+def test_memory_formula_matches_allocations():
+    """docs/gpu.md's peak memory: the forward's buffer list against the allocations made, and
+    the measured training-step coefficients on a scene they were not measured on."""
+    n, h = 120, 16
+    leaves = [t.requires_grad_(True) for t in _small_scene(n, seed=5)]
+    cam = splatting.EquirectCamera(h, 2 * h)
+    render_module._pixel_dirs(cam, torch.float32, DEVICE)
+    cap = bin_triton.capacity_for(DEVICE)
+    cap.poll()
+    cap.reserve(1 << 14, n)
+    capacity = cap.capacity
+    with AllocationTracker() as tracker:
+        out = splatting.render(*leaves, eye(torch.float32), cam, backend="cuda")
+        forward_peak = tracker.peak
+        (out.image.sum() + out.depth.sum() + out.alpha.sum()).backward()
+    expected = gpu_memory.forward_bytes(n, h, 2 * h, capacity)["peak"]
+    assert abs(forward_peak - expected) <= 0.03 * expected, (forward_peak, expected)
+    expected_step = gpu_memory.training_step_bytes(n, h, 2 * h, capacity)
+    assert abs(tracker.peak - expected_step) <= 0.15 * expected_step, (tracker.peak, expected_step)
