@@ -196,8 +196,9 @@ class Trainer:
         self.extra_fingerprint = ""
         self._in_step = False
         #: Seconds spent in each part of the step, summed over steps (`pano-pipe bench train`);
-        #: None = not timed (timing a CUDA step waits for the device at every part).
-        self.part_seconds: dict[str, float] | None = None
+        #: timed on the CPU (free there), None = not timed (a CUDA step would wait for the
+        #: device at every part; set it to {} to time one anyway).
+        self.part_seconds: dict[str, float] | None = {} if self.device.type == "cpu" else None
 
     def _new_appearance(self) -> Appearance | None:
         if not self.cfg.appearance:
