@@ -205,12 +205,6 @@ inline void for_span_rows(const Span& s, const T* dirs, int64_t HW, int W, int x
   }
 }
 
-// The lanes for_span_rows uses for a span (its window's width; tw for the generic one).
-inline int span_lanes(const Span& s, int x0, int tw) {
-  const Window wd = lane_window({s.a0 - x0, s.a1 - x0, s.b0 - x0, s.b1 - x0}, tw);
-  return wd.nl ? wd.nl : tw;
-}
-
 // One tile row of the forward, all lanes at once so that the compiler vectorises it:
 // NL lanes (a compile-time tile width, one or two vector registers, no scalar
 // remainder), or n lanes if NL == 0. A lane outside the box, missed by the Gaussian
@@ -246,44 +240,26 @@ inline int row_forward(const G<T>& q, const T* __restrict dx, const T* __restric
   return nblend;
 }
 
-// Per-(Gaussian, tile) gradient sums with respect to the packed parameters (PACK order),
-// kept per lane (v[i][j]: parameter i, lane j of the row window) over all the rows of a
-// span and summed over the lanes once, at the end: a horizontal sum of 19 vectors per row
-// cost about as much as the row's arithmetic.
+// Per-(Gaussian, tile) gradient sums with respect to the packed parameters (PACK order).
 template <typename T>
 struct PackGrad {
-  alignas(64) T v[PACK - 1][MAX_TILE];
-  int nl = 0;  // lanes in use (the widest row window seen)
-  void clear(int n) {
-    for (int i = 0; i < PACK - 1; ++i)
-      for (int j = 0; j < n; ++j) v[i][j] = 0;
-    nl = n;
-  }
-  T sum(int i) const {
-    T s = 0;
-    for (int j = 0; j < nl; ++j) s += v[i][j];
-    return s;
-  }
+  T v[PACK - 1] = {};
 };
 
 // One tile row of the backward, vectorised like row_forward: pixels behind the
 // Gaussian's last blend (k > last) or missed by it contribute nothing through selects.
-// Adds lane j's terms to acc.v[.][j]. Returns the number of pixels that had blended this Gaussian.
+// Returns the number of pixels that had blended this Gaussian.
 template <typename T, int NL>
 inline int row_backward(const G<T>& q, const T* __restrict dx, const T* __restrict dy, const T* __restrict dz, int n,
                         Lanes ln, int32_t k, const int32_t* __restrict last, T* __restrict Tr, T* __restrict Sg,
                         const T* __restrict gCr, const T* __restrict gCg, const T* __restrict gCb,
                         const T* __restrict gD, const T* __restrict gA, PackGrad<T>& acc) {
+  T ga1x = 0, ga1y = 0, ga1z = 0, ga2x = 0, ga2y = 0, ga2z = 0, gnx = 0, gny = 0, gnz = 0, guc = 0, gvc = 0,
+    gq00 = 0, gq01 = 0, gq11 = 0, gop = 0, gcr = 0, gcg = 0, gcb = 0, gdist = 0;
   int nact = 0;
   const int m = NL ? NL : n;
-  T* __restrict ga1x = acc.v[0]; T* __restrict ga1y = acc.v[1]; T* __restrict ga1z = acc.v[2];
-  T* __restrict ga2x = acc.v[3]; T* __restrict ga2y = acc.v[4]; T* __restrict ga2z = acc.v[5];
-  T* __restrict gnx = acc.v[6]; T* __restrict gny = acc.v[7]; T* __restrict gnz = acc.v[8];
-  T* __restrict guc = acc.v[9]; T* __restrict gvc = acc.v[10];
-  T* __restrict gq00 = acc.v[11]; T* __restrict gq01 = acc.v[12]; T* __restrict gq11 = acc.v[13];
-  T* __restrict gop = acc.v[14]; T* __restrict gcr = acc.v[15]; T* __restrict gcg = acc.v[16];
-  T* __restrict gcb = acc.v[17]; T* __restrict gdist = acc.v[18];
-#pragma omp simd reduction(+ : nact)
+#pragma omp simd reduction(+ : ga1x, ga1y, ga1z, ga2x, ga2y, ga2z, gnx, gny, gnz, guc, gvc, gq00, gq01, gq11, gop, \
+                               gcr, gcg, gcb, gdist, nact)
   for (int j = 0; j < m; ++j) {
     const Eval<T> ev = evaluate(q, dx[j], dy[j], dz[j]);
     const T u = ev.u, v = ev.v, p = ev.p, ic = ev.ic;
@@ -299,29 +275,31 @@ inline int row_backward(const G<T>& q, const T* __restrict dx, const T* __restri
     Sg[j] = h ? Sg[j] + w * xg : Sg[j];
     Tr[j] = h ? Ti : Tr[j];
     nact += h;
-    gcr[j] += h ? w * gCr[j] : T(0);
-    gcg[j] += h ? w * gCg[j] : T(0);
-    gcb[j] += h ? w * gCb[j] : T(0);
-    gdist[j] += h ? w * gD[j] : T(0);
+    gcr += h ? w * gCr[j] : T(0);
+    gcg += h ? w * gCg[j] : T(0);
+    gcb += h ? w * gCb[j] : T(0);
+    gdist += h ? w * gD[j] : T(0);
     // no gradient through the 0.99 clamp (docs/splatting.md)
     const bool g = h & (oG < (T)ALPHA_MAX);
-    // selects, not products with zero: a missed lane's u, v need not be finite
     const T dpow = -oG * dLda;
     const T du = dpow * (q.q00 * u + q.q01 * v);
     const T dv = dpow * (q.q01 * u + q.q11 * v);
-    gop[j] += g ? Gv * dLda : T(0);
-    gq00[j] += g ? T(0.5) * dpow * u * u : T(0);
-    gq01[j] += g ? dpow * u * v : T(0);
-    gq11[j] += g ? T(0.5) * dpow * v * v : T(0);
-    guc[j] -= g ? du : T(0);
-    gvc[j] -= g ? dv : T(0);
+    gop += g ? Gv * dLda : T(0);
+    gq00 += g ? T(0.5) * dpow * u * u : T(0);
+    gq01 += g ? dpow * u * v : T(0);
+    gq11 += g ? T(0.5) * dpow * v * v : T(0);
+    guc -= g ? du : T(0);
+    gvc -= g ? dv : T(0);
     // h0 = (u + uc) c, h1 = (v + vc) c
     const T dh0 = g ? du * ic : T(0), dh1 = g ? dv * ic : T(0);
-    const T dc = g ? -(dh0 * (u + q.uc) + dh1 * (v + q.vc)) : T(0);
-    ga1x[j] += dh0 * dx[j]; ga1y[j] += dh0 * dy[j]; ga1z[j] += dh0 * dz[j];
-    ga2x[j] += dh1 * dx[j]; ga2y[j] += dh1 * dy[j]; ga2z[j] += dh1 * dz[j];
-    gnx[j] += dc * dx[j]; gny[j] += dc * dy[j]; gnz[j] += dc * dz[j];
+    const T dc = -(dh0 * (u + q.uc) + dh1 * (v + q.vc));
+    ga1x += dh0 * dx[j]; ga1y += dh0 * dy[j]; ga1z += dh0 * dz[j];
+    ga2x += dh1 * dx[j]; ga2y += dh1 * dy[j]; ga2z += dh1 * dz[j];
+    gnx += g ? dc * dx[j] : T(0); gny += g ? dc * dy[j] : T(0); gnz += g ? dc * dz[j] : T(0);
   }
+  const T sums[PACK - 1] = {ga1x, ga1y, ga1z, ga2x, ga2y, ga2z, gnx, gny, gnz, guc, gvc,
+                            gq00, gq01, gq11, gop, gcr, gcg, gcb, gdist};
+  for (int i = 0; i < PACK - 1; ++i) acc.v[i] += sums[i];
   return nact;
 }
 
@@ -396,7 +374,6 @@ void backward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t
           gCb[MAX_TILE * MAX_TILE], gD[MAX_TILE * MAX_TILE], gA[MAX_TILE * MAX_TILE];
       int32_t last[MAX_TILE * MAX_TILE];
       int64_t kmax = -1;
-      PackGrad<T> acc;
       for (int r = y0; r < y1; ++r)
         for (int col = x0; col < x1; ++col) {
           const int i = (r - y0) * tw + (col - x0);
@@ -428,7 +405,7 @@ void backward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t
         const G<T> q(P + (int64_t)g * PACK);
         // per-(Gaussian, tile) sums in the working precision (at most ts² terms), then
         // added to the thread's double buffer
-        acc.clear(span_lanes(s, x0, tw));
+        PackGrad<T> acc;
         int any = 0;
         for_span_rows<T>(s, dirs, HW, W, x0, y0, tw, [&](auto nl, const T* dx, const T* dy, const T* dz, int i, Lanes ln) {
           any |= row_backward<T, decltype(nl)::value>(q, dx, dy, dz, tw, ln, (int32_t)k, last + i, Tr + i, Sg + i,
@@ -436,7 +413,7 @@ void backward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t
         });
         if (any) {
           double* gb = mybuf + (int64_t)g * PACK;
-          for (int i = 0; i < PACK - 1; ++i) gb[i] += acc.sum(i);
+          for (int i = 0; i < PACK - 1; ++i) gb[i] += acc.v[i];
         }
       }
     }
