@@ -74,16 +74,16 @@ class _SSIM(torch.autograd.Function):
     @staticmethod
     def forward(ctx, pred, gt, w, weight):
         c = pred.shape[1]
-        # one batched pass over the five maps SSIM needs
+        # one batched pass over the five maps SSIM needs; then in-place and fused (addcmul)
+        # operations: each image-sized operation is a pass over memory
         maps = _blur(torch.cat([pred, gt, pred * pred, gt * gt, pred * gt], 1), w.repeat(5, 1, 1, 1))
         mu1, mu2, e11, e22, e12 = maps.split(c, dim=1)
-        mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
-        a1 = 2 * mu12 + _SSIM.C1
-        a2 = 2 * (e12 - mu12) + _SSIM.C2
-        b1 = mu1_sq + mu2_sq + _SSIM.C1
-        b2 = (e11 - mu1_sq) + (e22 - mu2_sq) + _SSIM.C2
+        a1 = torch.mul(mu1, mu2).mul_(2).add_(_SSIM.C1)  # 2 μ1μ2 + C1
+        a2 = torch.addcmul(e12, mu1, mu2, value=-1).mul_(2).add_(_SSIM.C2)  # 2 σ12 + C2
+        b1 = torch.addcmul(torch.mul(mu1, mu1), mu2, mu2).add_(_SSIM.C1)  # μ1² + μ2² + C1
+        b2 = torch.add(e11, e22).sub_(b1).add_(_SSIM.C1 + _SSIM.C2)  # σ1² + σ2² + C2
         d = b1 * b2
-        smap = a1 * a2 / d
+        smap = torch.mul(a1, a2).div_(d)
         out = smap.mean() if weight is None else (smap.mean(dim=1) * weight).sum()
         ctx.save_for_backward(pred, gt, w, weight, mu1, mu2, a1, a2, b1, b2, d, smap)
         ctx.has_weight = weight is not None
@@ -95,13 +95,20 @@ class _SSIM(torch.autograd.Function):
         c = pred.shape[1]
         # d(out)/d(map) per pixel
         k = grad * (weight / c if ctx.has_weight else 1.0 / smap.numel())
-        # ∂S/∂μ1, ∂S/∂E[x²], ∂S/∂E[xy] (μ2, E[y²] are constants)
-        d_mu1 = (2 * k) * (mu2 * (a2 - a1) / d + mu1 * smap * (1 / b2 - 1 / b1))
-        d_e11 = -k * smap / b2
-        d_e12 = (2 * k) * a1 / d
-        bl = _blur(torch.cat([d_mu1, d_e11, d_e12], 1), w.repeat(3, 1, 1, 1))
+        # ∂S/∂μ1, ∂S/∂E[x²], ∂S/∂E[xy] (μ2, E[y²] are constants), scaled by k, written
+        # straight into the buffer the blur reads
+        maps = torch.empty((pred.shape[0], 3 * c) + tuple(pred.shape[2:]), dtype=pred.dtype, device=pred.device)
+        d_mu1, d_e11, d_e12 = maps.split(c, dim=1)
+        torch.div(smap, b2, out=d_e11)  # S / B2
+        torch.div(a1, d, out=d_e12)  # A1 / D
+        # 2 μ2 (A2 − A1) / D + 2 μ1 S (1/B2 − 1/B1)
+        torch.sub(a2, a1, out=d_mu1).mul_(mu2).div_(d)
+        d_mu1.addcmul_(mu1, d_e11).addcmul_(mu1, torch.div(smap, b1), value=-1).mul_(2 * k)
+        d_e11.mul_(-k)
+        d_e12.mul_(2 * k)
+        bl = _blur(maps, w.repeat(3, 1, 1, 1))
         g_mu1, g_e11, g_e12 = bl.split(c, dim=1)
-        return g_mu1 + 2 * pred * g_e11 + gt * g_e12, None, None, None
+        return g_mu1.addcmul_(pred, g_e11, value=2).addcmul_(gt, g_e12), None, None, None
 
 
 def psnr(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> float:
