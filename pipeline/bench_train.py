@@ -49,7 +49,7 @@ print("BENCH-RESULT " + json.dumps({"wall": wall, **art}))
 """
 
 
-def _run_in(checkout: Path, scene: Path, run_dir: Path, config: dict, until: str | None, log) -> dict:
+def _run_in(checkout: Path, scene: Path, run_dir: Path, config: dict, until: str | None) -> dict:
     env = dict(os.environ, PYTHONPATH=str(checkout))
     proc = subprocess.run([sys.executable, "-c", _WORKER, str(scene), str(run_dir), json.dumps(config), until or ""],
                           cwd=checkout, env=env, capture_output=True, text=True)
@@ -98,14 +98,14 @@ def bench_train(scene: Path | None, device: str, preset: str, height: int, out_m
         for name, co in checkouts.items():  # the stages before train, once per checkout
             prepared[name] = Path(tmp) / f"upstream-{name}"
             log(f"bench train: {name} ({co}): the stages before train")
-            _run_in(co, scene, prepared[name], config, "align", log)
+            _run_in(co, scene, prepared[name], config, "align")
         for r in range(repeats):
             for name, co in checkouts.items():  # alternately, so both see the same load
                 run_dir = Path(tmp) / f"run-{name}-{r}"
                 shutil.copytree(prepared[name], run_dir)
                 log(f"bench train: {name}, repeat {r + 1}/{repeats}: train + evaluate, train.preset={preset}, "
                     f"device={device}" + (f", {iterations} iterations" if iterations else ""))
-                s = _summary(_run_in(co, scene, run_dir, config, None, log))
+                s = _summary(_run_in(co, scene, run_dir, config, None))
                 log(f"  {s['iterations_per_s']:.3f} it/s, held-out PSNR {_fmt(s['heldout_psnr'], 2)} dB, "
                     f"{s['num_gaussians']:,} Gaussians")
                 runs[name].append(s)

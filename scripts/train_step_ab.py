@@ -7,12 +7,31 @@ in one process, so both see the same load:
 RUN_DIR holds the stages before train (`pano-pipe run all SCENE --out RUN_DIR --until align`);
 the paper preset at 512x1024. Prints the median seconds per step of each and the ratio.
 """
-import importlib.util, statistics, sys, time, torch
+
+import importlib.util
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import gaussians.losses as L
+import gaussians.optim as Onew
+import gaussians.trainer as T
+from pipeline.engine import Engine
+from pipeline.registry import build_registry
+from pipeline.scene_loader import load_scene
+
+
 def load(name, path):
-    spec = importlib.util.spec_from_file_location(name, path); m = importlib.util.module_from_spec(spec)
-    sys.modules[name] = m; spec.loader.exec_module(m); return m
+    """The module at `path` under `name` (the other checkout's copy)."""
+    spec = importlib.util.spec_from_file_location(name, path)
+    m = importlib.util.module_from_spec(spec)
+    sys.modules[name] = m
+    spec.loader.exec_module(m)
+    return m
+
+
 base = sys.argv[4]
-import gaussians.losses as L, gaussians.optim as Onew, gaussians.trainer as T
 Lold = load("losses_old", f"{base}/gaussians/losses.py")
 Oold = load("optim_old", f"{base}/gaussians/optim.py")
 Told = load("trainer_old", f"{base}/gaussians/trainer.py")
@@ -29,10 +48,6 @@ def step(self):
     res["old" if old else "new"].append(time.perf_counter() - t)
     return r
 T.Trainer.step = step
-from pipeline.engine import Engine
-from pipeline.registry import build_registry
-from pipeline.scene_loader import load_scene
-from pathlib import Path
 cfg = {"train": {"preset": "paper", "device": "cpu", "height": 512, "iterations": int(sys.argv[3])}}
 Engine(load_scene(Path(sys.argv[2])), Path(sys.argv[1]), build_registry(), cfg).run(until="train")
 for k, v in res.items():
