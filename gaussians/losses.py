@@ -46,25 +46,69 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 
          mask: torch.Tensor | None = None) -> torch.Tensor:
     """Mean SSIM of two [H,W,3] (or [B,3,H,W]) images in [0,1], as the 3DGS code computes it
     (Gaussian window, zero padding). With `mask` ([H,W] bool): masked-out pixels are zeroed in
-    both images (their content has no effect) and the map is averaged over valid pixels only."""
+    both images (their content has no effect) and the map is averaged over valid pixels only.
+    Differentiable in `pred` only (its gradient is written out, see _SSIM)."""
     if mask is not None:
         m = mask[..., None].to(pred.dtype)
         pred, gt = pred * m, gt * m
     if pred.ndim == 3:
         pred = pred.permute(2, 0, 1)[None]
         gt = gt.permute(2, 0, 1)[None]
-    c = pred.shape[1]
-    w = _window_1d(window, sigma, c, pred.dtype, pred.device)
-    # one batched pass over the five maps SSIM needs
-    maps = _blur(torch.cat([pred, gt, pred * pred, gt * gt, pred * gt], 1), w.repeat(5, 1, 1, 1))
-    mu1, mu2, e11, e22, e12 = maps.split(c, dim=1)
-    mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
-    s1, s2, s12 = e11 - mu1_sq, e22 - mu2_sq, e12 - mu12
-    c1, c2 = 0.01**2, 0.03**2
-    m = ((2 * mu12 + c1) * (2 * s12 + c2)) / ((mu1_sq + mu2_sq + c1) * (s1 + s2 + c2))
-    if mask is not None:
-        return (m.mean(dim=1)[0] * mask.to(m.dtype)).sum() / mask.sum().clamp_min(1)
-    return m.mean()
+    w = _window_1d(window, sigma, pred.shape[1], pred.dtype, pred.device)
+    weight = None
+    if mask is not None:  # per-pixel weights of the channel-mean map: 1 / valid pixels
+        mk = mask.to(pred.dtype)
+        weight = mk / mk.sum().clamp_min(1)
+    return _SSIM.apply(pred, gt.detach(), w, weight)
+
+
+class _SSIM(torch.autograd.Function):
+    """SSIM's map summed with weights (`weight` [H,W] over the channel mean, or the plain mean),
+    with its gradient in closed form: the map S = A1·A2 / (B1·B2) depends on `pred` through the
+    blurred μ1, E[x²], E[xy] only, so the gradient is three blurred maps (the blur is its own
+    adjoint: a symmetric window with zero padding), about half the work of autograd's
+    convolution backward and its elementwise chain."""
+
+    C1, C2 = 0.01**2, 0.03**2
+
+    @staticmethod
+    def forward(ctx, pred, gt, w, weight):
+        c = pred.shape[1]
+        # one batched pass over the five maps SSIM needs; then in-place and fused (addcmul)
+        # operations: each image-sized operation is a pass over memory
+        maps = _blur(torch.cat([pred, gt, pred * pred, gt * gt, pred * gt], 1), w.repeat(5, 1, 1, 1))
+        mu1, mu2, e11, e22, e12 = maps.split(c, dim=1)
+        a1 = torch.mul(mu1, mu2).mul_(2).add_(_SSIM.C1)  # 2 μ1μ2 + C1
+        a2 = torch.addcmul(e12, mu1, mu2, value=-1).mul_(2).add_(_SSIM.C2)  # 2 σ12 + C2
+        b1 = torch.addcmul(torch.mul(mu1, mu1), mu2, mu2).add_(_SSIM.C1)  # μ1² + μ2² + C1
+        b2 = torch.add(e11, e22).sub_(b1).add_(_SSIM.C1 + _SSIM.C2)  # σ1² + σ2² + C2
+        d = b1 * b2
+        smap = torch.mul(a1, a2).div_(d)
+        out = smap.mean() if weight is None else (smap.mean(dim=1) * weight).sum()
+        ctx.save_for_backward(pred, gt, w, weight, mu1, mu2, a1, a2, b1, b2, d, smap)
+        ctx.has_weight = weight is not None
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        pred, gt, w, weight, mu1, mu2, a1, a2, b1, b2, d, smap = ctx.saved_tensors
+        c = pred.shape[1]
+        # d(out)/d(map) per pixel
+        k = grad * (weight / c if ctx.has_weight else 1.0 / smap.numel())
+        # ∂S/∂μ1, ∂S/∂E[x²], ∂S/∂E[xy] (μ2, E[y²] are constants), scaled by k, written
+        # straight into the buffer the blur reads
+        maps = torch.empty((pred.shape[0], 3 * c) + tuple(pred.shape[2:]), dtype=pred.dtype, device=pred.device)
+        d_mu1, d_e11, d_e12 = maps.split(c, dim=1)
+        torch.div(smap, b2, out=d_e11)  # S / B2
+        torch.div(a1, d, out=d_e12)  # A1 / D
+        # 2 μ2 (A2 − A1) / D + 2 μ1 S (1/B2 − 1/B1)
+        torch.sub(a2, a1, out=d_mu1).mul_(mu2).div_(d)
+        d_mu1.addcmul_(mu1, d_e11).addcmul_(mu1, torch.div(smap, b1), value=-1).mul_(2 * k)
+        d_e11.mul_(-k)
+        d_e12.mul_(2 * k)
+        bl = _blur(maps, w.repeat(3, 1, 1, 1))
+        g_mu1, g_e11, g_e12 = bl.split(c, dim=1)
+        return g_mu1.addcmul_(pred, g_e11, value=2).addcmul_(gt, g_e12), None, None, None
 
 
 def psnr(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> float:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 
 import torch
+from torch.optim.adam import adam as _torch_adam
 
 from gaussians.model import PARAM_NAMES, Gaussians
 
@@ -52,14 +53,22 @@ class Adam:
         self._init_state(g)
         self.step_count += 1
         b1, b2 = self.betas
-        bc1 = 1.0 - b1**self.step_count
-        bc2 = 1.0 - b2**self.step_count
         for k, lr in self.lrs.items():
             p = getattr(g, k)
             grad = p.grad
             if grad is None:  # as torch.optim.Adam: no gradient, no update (e.g. SH bands not yet in use)
                 continue
             m, v = self.exp_avg[k], self.exp_avg_sq[k]
+            if _fused_ok(p):
+                # torch's fused Adam: one pass over the parameter, its gradient and both moments
+                # instead of eight (the optimiser was ~15 % of a CPU step at 300k Gaussians); the
+                # same update as below to rounding. It adds 1 to the step it is given.
+                steps = [torch.full((), float(self.step_count - 1), dtype=torch.float32, device=p.device)]
+                _torch_adam([p], [grad], [m], [v], [], steps, fused=True, amsgrad=False, beta1=b1,
+                                      beta2=b2, lr=lr, weight_decay=0.0, eps=self.eps, maximize=False)
+                continue
+            bc1 = 1.0 - b1**self.step_count
+            bc2 = 1.0 - b2**self.step_count
             m.mul_(b1).add_(grad, alpha=1.0 - b1)
             v.mul_(b2).addcmul_(grad, grad, value=1.0 - b2)
             denom = (v.sqrt() / math.sqrt(bc2)).add_(self.eps)
@@ -132,6 +141,11 @@ class Adam:
         self.step_count = int(steps)
         self.exp_avg = {k: x.clone() for k, x in m.items()}
         self.exp_avg_sq = {k: x.clone() for k, x in v.items()}
+
+
+def _fused_ok(p: torch.Tensor) -> bool:
+    """Whether torch's fused Adam kernel takes `p` (CPU and CUDA floating tensors)."""
+    return p.device.type in ("cpu", "cuda") and p.dtype in (torch.float32, torch.float64) and p.is_contiguous()
 
 
 def _real(x: object) -> bool:

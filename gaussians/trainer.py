@@ -124,6 +124,33 @@ def scene_extent(points: np.ndarray | torch.Tensor, low: float = 1.0, high: floa
     return float(max(0.5 * np.linalg.norm(hi - lo), 0.1))
 
 
+def _all_finite(tensors: list[torch.Tensor]) -> torch.Tensor:
+    """0-dim bool: every value of every tensor finite. One read pass per tensor (min and max
+    are finite exactly when all values are: both propagate NaN), no host sync."""
+    if not tensors:
+        return torch.ones((), dtype=torch.bool)
+    ends = torch.stack([torch.stack(torch.aminmax(t)) for t in tensors])
+    return torch.isfinite(ends).all()
+
+
+class _Laps:
+    """Adds the seconds since the previous lap to `parts[name]`; does nothing when `parts` is None."""
+
+    def __init__(self, parts: dict[str, float] | None, device: torch.device):
+        self.parts = parts
+        self.cuda = device.type == "cuda"
+        self.t = time.perf_counter() if parts is not None else 0.0
+
+    def __call__(self, name: str) -> None:
+        if self.parts is None:
+            return
+        if self.cuda:
+            torch.cuda.synchronize()
+        now = time.perf_counter()
+        self.parts[name] = self.parts.get(name, 0.0) + now - self.t
+        self.t = now
+
+
 @dataclass
 class _Ema:
     loss: float | None = None
@@ -161,12 +188,17 @@ class Trainer:
         self.log_path = log_path
         self._bg = torch.tensor(cfg.background, dtype=self.g.means.dtype, device=self.device)
         self._has_layout: bool | None = None  # cached: asking the device every iteration would sync
+        self._layout_rows: tuple[torch.Tensor, ...] = ()
         self.last_loss: float | None = None
         #: Per-panorama colour transforms (None: off); applied to training renders only.
         self.appearance = self._new_appearance()
         #: Extra identity a checkpoint must match (e.g. a hash of the initial model and images).
         self.extra_fingerprint = ""
         self._in_step = False
+        #: Seconds spent in each part of the step, summed over steps (`pano-pipe bench train`);
+        #: timed on the CPU (free there), None = not timed (a CUDA step would wait for the
+        #: device at every part; set it to {} to time one anyway).
+        self.part_seconds: dict[str, float] | None = {} if self.device.type == "cpu" else None
 
     def _new_appearance(self) -> Appearance | None:
         if not self.cfg.appearance:
@@ -195,8 +227,10 @@ class Trainer:
             self.active_sh = min(self.active_sh + 1, cfg.sh_degree, self.g.sh_degree)
         view = self._next_view()
         g = self.g
+        lap = _Laps(self.part_seconds, self.device)
         out = render(g, view.viewmat, view.camera, backend=cfg.backend, background=self._bg,
                      sh_degree=self.active_sh)
+        lap("render")
         pred = self._as_trained(view, out.image)
         photo, l1, s = photometric_loss(pred, view.image, cfg.lambda_l1, cfg.lambda_dssim, mask=view.mask)
         loss = photo
@@ -205,22 +239,29 @@ class Trainer:
         lay = None
         if self._has_layout is None:
             self._has_layout = bool(g.is_layout.any())
+            # the layout Gaussians' rows, anchors and normals change only with densification:
+            # selected once, not by the mask at every step
+            idx = torch.nonzero(g.is_layout).squeeze(1)
+            self._layout_rows = (idx, g.u0[idx], g.normals[idx])
         if cfg.layout_reg and cfg.lambda_layout > 0 and self._has_layout:
-            lay = layout_loss(g.means, g.u0, g.normals, g.is_layout)
+            idx, u0, normals = self._layout_rows
+            lay = layout_loss(g.means[idx], u0, normals)
             loss = loss + cfg.lambda_layout * lay
         if out.means2d.requires_grad:
             out.means2d.retain_grad()
+        lap("losses")
         loss.backward()
+        lap("backward")
 
         with torch.no_grad():
             # on the device, without a host sync: counted here, read by the log
-            finite = torch.ones((), dtype=torch.bool, device=self.device)
-            for k in PARAM_NAMES:
-                p = getattr(g, k)
-                if p.grad is not None:
-                    finite &= torch.isfinite(p.grad).all()
-                    torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+            grads = [p.grad for p in (getattr(g, k) for k in PARAM_NAMES) if p.grad is not None and p.grad.numel()]
+            finite = _all_finite(grads)
             self.nonfinite_steps = self.nonfinite_steps + (~finite).long()
+            # on the CPU reading the flag costs nothing, and saves a pass over every gradient
+            if self.device.type != "cpu" or not bool(finite):
+                for gr in grads:
+                    torch.nan_to_num_(gr, nan=0.0, posinf=0.0, neginf=0.0)
             self.opt.step(g)
             if self.appearance is not None:
                 self.appearance.step()
@@ -228,6 +269,7 @@ class Trainer:
             # quaternions: keep them away from zero (the renderer copes, Adam's steps would not)
             qn = torch.linalg.vector_norm(g.quats, dim=-1, keepdim=True)
             g.quats.copy_(torch.where(qn > 1e-8, g.quats, g.quats.new_tensor([1.0, 0, 0, 0])))
+            lap("optimiser")
 
             if it < cfg.densify_until:
                 self.stats.add(out.means2d.grad if out.means2d.requires_grad else None, out.visible, out.radii,
@@ -248,6 +290,7 @@ class Trainer:
                     self.stats = DensifyStats.zeros(len(self.g), dtype=self.g.means.dtype, device=self.device)
                 if cfg.opacity_reset_every > 0 and it % cfg.opacity_reset_every == 0:
                     reset_opacity(self.g, self.opt)
+            lap("densify")
 
         # 0-dim tensors, not floats: reading them would wait for the device every iteration;
         # the log (every log_every iterations) converts them
@@ -255,6 +298,7 @@ class Trainer:
         p = psnr_tensor(pred, view.image, view.mask)
         self.ema.update(lv, p)
         self.last_loss = lv
+        lap("log")
         self._in_step = False
         return {
             "iteration": it, "loss": lv, "l1": l1.detach(), "ssim": s.detach(),

@@ -1,12 +1,25 @@
-"""``pano-pipe bench train``: wall time, iterations per second and held-out PSNR of one
-training preset through the whole pipeline (the engine `pano-pipe run all` drives), on the
-CPU or the GPU (``--device``): the figures docs/gpu.md compares."""
+"""``pano-pipe bench train``: iterations per second, seconds per part of the training step and
+held-out PSNR of one training preset through the whole pipeline (the engine `pano-pipe run all`
+drives), on the CPU or the GPU (``--device``): the figures docs/gpu.md and docs/benchmarks.md
+compare.
+
+``--against CHECKOUT`` runs the same bench on another checkout of pano-pipe (e.g. a git
+worktree of an older commit) in the same run, alternately with this one, and prints the
+ratio: absolute times on a shared machine vary from run to run, their ratio far less. Each
+checkout runs in its own subprocess, importing its own code (and compiling its own kernel).
+The stages before `train` run once per checkout; every repeat copies their run folder and
+runs `train` and `evaluate` from there.
+"""
 
 from __future__ import annotations
 
 import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
 import tempfile
-import time
 from pathlib import Path
 
 import torch
@@ -14,16 +27,66 @@ import torch
 from pipeline.errors import PanoError
 from pipeline.fsutil import atomic_write_text
 
+# Runs one step of the bench inside a checkout (argv: scene, run folder, config JSON, until or "").
+# Plain engine calls that every version of pano-pipe with `train.iterations` understands.
+_WORKER = r"""
+import json, sys, time
+from pathlib import Path
+from pipeline.engine import Engine
+from pipeline.registry import build_registry
+from pipeline.scene_loader import load_scene
+scene, run_dir, config, until = Path(sys.argv[1]), Path(sys.argv[2]), json.loads(sys.argv[3]), sys.argv[4] or None
+t0 = time.perf_counter()
+Engine(load_scene(scene), run_dir, build_registry(), config).run(until=until)
+wall = time.perf_counter() - t0
+art = {}
+for name in ("train", "evaluate"):
+    f = run_dir / name / "artifact.json"
+    if f.is_file():
+        a = json.loads(f.read_text())
+        art[name] = a.get("data", a)
+print("BENCH-RESULT " + json.dumps({"wall": wall, **art}))
+"""
+
+
+def _run_in(checkout: Path, scene: Path, run_dir: Path, config: dict, until: str | None) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(checkout))
+    proc = subprocess.run([sys.executable, "-c", _WORKER, str(scene), str(run_dir), json.dumps(config), until or ""],
+                          cwd=checkout, env=env, capture_output=True, text=True)
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("BENCH-RESULT ")]
+    if proc.returncode != 0 or not lines:
+        tail = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or ["no output"]
+        raise PanoError(checkout, f"bench run failed: {tail[0]}")
+    return json.loads(lines[-1].split(" ", 1)[1])
+
+
+def _summary(res: dict) -> dict:
+    train, evaluate = res.get("train", {}), res.get("evaluate", {})
+    mean = evaluate.get("mean")
+    return {
+        "train_seconds": train.get("train_seconds"), "iterations": train.get("iterations"),
+        "iterations_per_s": train["iterations"] / max(train["train_seconds"], 1e-9),
+        "num_gaussians": train.get("num_gaussians"), "backend": train.get("backend"),
+        "step_seconds": train.get("step_seconds"),
+        "heldout_psnr": mean.get("psnr") if isinstance(mean, dict) else None,
+        "render_fps": evaluate.get("fps"), "run_wall_s": res["wall"],
+    }
+
 
 def bench_train(scene: Path | None, device: str, preset: str, height: int, out_md: Path, out_json: Path,
+                iterations: int | None = None, against: Path | None = None, repeats: int = 1,
                 log=print) -> dict:
     if device == "cuda" and not torch.cuda.is_available():
         raise PanoError("--device", "cuda asked for, but torch sees no CUDA device here (docs/gpu.md)")
-    from pipeline.engine import Engine
-    from pipeline.registry import build_registry
-    from pipeline.scene_loader import load_scene
-
-    config = {"train": {"preset": preset, "device": device, "height": height}, "evaluate": {"device": device}}
+    if against is not None and not (against / "pipeline" / "engine.py").is_file():
+        raise PanoError(against, "not a pano-pipe checkout (no pipeline/engine.py)")
+    here = Path(__file__).resolve().parents[1]
+    checkouts = {"this": here} if against is None else {"this": here, "other": against.resolve()}
+    train_cfg = {"preset": preset, "device": device, "height": height}
+    if iterations is not None:
+        train_cfg["iterations"] = int(iterations)
+    config = {"train": train_cfg, "evaluate": {"device": device}}
+    runs: dict[str, list[dict]] = {k: [] for k in checkouts}
     with tempfile.TemporaryDirectory(prefix="pano-bench-train-") as tmp:
         if scene is None:
             import simulate
@@ -31,32 +94,89 @@ def bench_train(scene: Path | None, device: str, preset: str, height: int, out_m
             scene = Path(tmp) / "demo"
             log(f"bench train: simulating the demo scene at {2 * height}x{height}")
             simulate.generate_scene(scene, preset="demo", height=height, with_layout=True, with_depth=True)
-        run_dir = Path(tmp) / "run"
-        log(f"bench train: run all, train.preset={preset}, device={device}")
-        t0 = time.perf_counter()
-        Engine(load_scene(scene), run_dir, build_registry(), config).run()
-        wall = time.perf_counter() - t0
-        art = {name: json.loads((run_dir / name / "artifact.json").read_text())
-               for name in ("train", "evaluate")}
-    train, evaluate = (a.get("data", a) for a in (art["train"], art["evaluate"]))
+        prepared = {}
+        for name, co in checkouts.items():  # the stages before train, once per checkout
+            prepared[name] = Path(tmp) / f"upstream-{name}"
+            log(f"bench train: {name} ({co}): the stages before train")
+            _run_in(co, scene, prepared[name], config, "align")
+        for r in range(repeats):
+            for name, co in checkouts.items():  # alternately, so both see the same load
+                run_dir = Path(tmp) / f"run-{name}-{r}"
+                shutil.copytree(prepared[name], run_dir)
+                log(f"bench train: {name}, repeat {r + 1}/{repeats}: train + evaluate, train.preset={preset}, "
+                    f"device={device}" + (f", {iterations} iterations" if iterations else ""))
+                s = _summary(_run_in(co, scene, run_dir, config, None))
+                log(f"  {s['iterations_per_s']:.3f} it/s, held-out PSNR {_fmt(s['heldout_psnr'], 2)} dB, "
+                    f"{s['num_gaussians']:,} Gaussians")
+                runs[name].append(s)
+                shutil.rmtree(run_dir, ignore_errors=True)
     result = {
-        "scene": str(scene), "preset": preset, "device": device, "height": height,
-        "gpu": torch.cuda.get_device_name() if device == "cuda" else None,
-        "run_all_wall_s": wall, "train_seconds": train["train_seconds"], "iterations": train["iterations"],
-        "iterations_per_s": train["iterations"] / max(train["train_seconds"], 1e-9),
-        "num_gaussians": train["num_gaussians"], "backend": train["backend"],
-        "heldout_psnr": evaluate["mean"].get("psnr") if isinstance(evaluate.get("mean"), dict) else None,
-        "render_fps": evaluate.get("fps"),
+        "scene": str(scene), "preset": preset, "device": device, "height": height, "iterations": iterations,
+        "gpu": torch.cuda.get_device_name() if device == "cuda" else None, "repeats": repeats,
+        "checkouts": {k: str(v) for k, v in checkouts.items()},
+        "runs": runs, **_median(runs["this"]),
     }
+    if against is not None:
+        this, other = _median(runs["this"]), _median(runs["other"])
+        result["other"] = other
+        result["speedup"] = this["iterations_per_s"] / other["iterations_per_s"]
+        if this["heldout_psnr"] is not None and other["heldout_psnr"] is not None:
+            result["psnr_delta_db"] = this["heldout_psnr"] - other["heldout_psnr"]
     atomic_write_text(out_json, json.dumps(result, indent=2))
-    where = result["gpu"] or "CPU"
-    atomic_write_text(out_md, f"""# Training benchmark ({where})
-
-Generated by `pano-pipe bench train --device {device} --preset {preset}`: the whole pipeline (`run all`)
-on {'the simulated demo scene' if 'demo' in str(scene) else scene} at {2 * height}x{height}.
-
-| device | preset | iterations | train s | it/s | run all wall s | Gaussians | held-out PSNR dB | render FPS |
-|---|---|---|---|---|---|---|---|---|
-| {where} | {preset} | {result['iterations']} | {result['train_seconds']:.1f} | {result['iterations_per_s']:.1f} | {wall:.1f} | {result['num_gaussians']:,} | {result['heldout_psnr'] if result['heldout_psnr'] is None else f"{result['heldout_psnr']:.2f}"} | {result['render_fps'] if result['render_fps'] is None else f"{result['render_fps']:.0f}"} |
-""")
+    atomic_write_text(out_md, _markdown(result, scene, against))
+    log(_markdown(result, scene, against))
     return result
+
+
+def _median(rows: list[dict]) -> dict:
+    """The per-field median of repeated runs (the step parts too)."""
+    def med(k):
+        vals = [r[k] for r in rows if r.get(k) is not None]
+        return statistics.median(vals) if vals else None
+
+    out = {k: med(k) for k in ("train_seconds", "iterations_per_s", "heldout_psnr", "render_fps", "run_wall_s",
+                               "num_gaussians")}
+    out["iterations"] = rows[0]["iterations"]
+    out["backend"] = rows[0]["backend"]
+    parts = [r["step_seconds"] for r in rows if r.get("step_seconds")]
+    out["step_seconds"] = {k: statistics.median(p.get(k, 0.0) for p in parts) for k in parts[0]} if parts else None
+    return out
+
+
+def _fmt(x, nd=1):
+    return "-" if x is None else f"{x:.{nd}f}"
+
+
+def _markdown(r: dict, scene: Path, against: Path | None) -> str:
+    where = r["gpu"] or "CPU"
+    cmd = f"pano-pipe bench train --device {r['device']} --preset {r['preset']} --height {r['height']}"
+    if r["iterations"]:
+        cmd += f" --iterations {r['iterations']}"
+    if against is not None:
+        cmd += f" --against {against} --repeats {r['repeats']}"
+    what = "the simulated demo scene" if "demo" in str(scene) else str(scene)
+    rows = [("this", r)] + ([("other", r["other"])] if against is not None else [])
+    text = f"""# Training benchmark ({where})
+
+Generated by `{cmd}`: the whole pipeline on {what} at {2 * r['height']}x{r['height']}
+(median of {r['repeats']} run(s){', alternating between the checkouts' if against is not None else ''}).
+
+| checkout | iterations | train s | it/s | Gaussians | held-out PSNR dB | render FPS |
+|---|---|---|---|---|---|---|
+"""
+    for name, s in rows:
+        label = name if against is None else f"{name} (`{r['checkouts'][name]}`)"
+        text += (f"| {label} | {s['iterations']} | {_fmt(s['train_seconds'])} | {_fmt(s['iterations_per_s'], 3)} | "
+                 f"{int(s['num_gaussians'] or 0):,} | {_fmt(s['heldout_psnr'], 2)} | {_fmt(s['render_fps'], 0)} |\n")
+    if against is not None:
+        text += (f"\nthis / other: **{r['speedup']:.2f}x** the iterations per second"
+                 + (f", held-out PSNR {r['psnr_delta_db']:+.2f} dB" if r.get("psnr_delta_db") is not None else "")
+                 + ".\n")
+    parts = [(name, s["step_seconds"]) for name, s in rows if s.get("step_seconds")]
+    if parts:
+        keys = list(dict.fromkeys(k for _, p in parts for k in p))
+        text += "\nSeconds per part of the step, summed over the iterations:\n\n"
+        text += "| checkout | " + " | ".join(keys) + " |\n|---|" + "---|" * len(keys) + "\n"
+        for name, p in parts:
+            text += f"| {name} | " + " | ".join(_fmt(p.get(k), 2) for k in keys) + " |\n"
+    return text

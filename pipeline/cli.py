@@ -503,16 +503,22 @@ def bench_train_command(
     device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cuda",
     preset: Annotated[str, typer.Option(help="train.preset: fast, paper or quality.")] = "paper",
     height: Annotated[int, typer.Option(help="Panorama height of the simulated scene and of training.")] = 512,
+    iterations: Annotated[Optional[int], typer.Option(min=1, help="train.iterations (default: the preset's).")] = None,
+    against: Annotated[Optional[Path], typer.Option(
+        help="Another pano-pipe checkout (e.g. a git worktree of an older commit) to run the same bench on, "
+             "alternately with this one, and compare.")] = None,
+    repeats: Annotated[int, typer.Option(min=1, help="Runs per checkout (medians are reported).")] = 1,
     out: BenchOutOpt = BENCH_OUT,
 ) -> None:
-    """Iterations/s, wall time and held-out PSNR of a training preset through `run all`."""
+    """Iterations/s, seconds per part of the step and held-out PSNR of a training preset through `run all`."""
     from pipeline.bench_train import bench_train
 
     if device not in ("cpu", "cuda"):
         raise PanoError("--device", f"must be cpu or cuda, got {device!r}")
     if preset not in ("fast", "paper", "quality"):
         raise PanoError("--preset", f"must be fast, paper or quality, got {preset!r}")
-    bench_train(scene, device, preset, height, out / "bench_train.md", out / "bench_train.json")
+    bench_train(scene, device, preset, height, out / "bench_train.md", out / "bench_train.json",
+                iterations=iterations, against=against, repeats=repeats)
 
 
 @bench_app.command("pipeline")

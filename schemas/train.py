@@ -51,5 +51,9 @@ class TrainOutput(BaseModel):
     lambda_layout: float | None = Field(default=None, description="λ3 actually used (0 with layout_reg off).")
     extent: float | None = Field(default=None, description="Scene extent (m) scaling the position learning rate.")
     resumed_from: int | None = Field(default=None, description="Iteration a --resume continued from.")
+    step_seconds: dict[str, float] | None = Field(
+        default=None, description="Seconds spent in each part of the training step (render, losses, backward, "
+                                  "optimiser, densify, log), summed over this run's iterations; CPU runs only "
+                                  "(timing a GPU step would wait for the device at every part).")
     appearance: str | None = Field(default=None, description="appearance.json: each training panorama's "
                                                             "learned colour gain and bias (train.appearance).")

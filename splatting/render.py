@@ -125,7 +125,10 @@ def render(
             camera, eps2d, near, int(tile_size), extra)
         if background is not None:
             bg = torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
-            image = image + (1.0 - alpha)[..., None] * bg
+            # a black background that needs no gradient adds nothing: skip three image-sized
+            # operations and their backward (reading bg costs nothing on the CPU)
+            if bg.requires_grad or bool(bg.any()):
+                image = image + (1.0 - alpha)[..., None] * bg
         return RenderOutput(image=image, alpha=alpha, depth=depth, means2d=means2d, radii=radii, visible=visible,
                             backend=backend)
     dirs = _pixel_dirs(camera, dtype, device)

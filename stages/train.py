@@ -519,6 +519,8 @@ def run(ctx: StageContext) -> TrainOutput:
         lambda_layout=cfg.lambda_layout if p.layout_reg else 0.0,
         extent=cfg.extent,
         resumed_from=resumed_from,
+        step_seconds=None if trainer.part_seconds is None else {
+            k: round(v, 3) for k, v in trainer.part_seconds.items()},
         appearance="appearance.json" if trainer.appearance is not None else None,
     )
 

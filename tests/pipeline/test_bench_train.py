@@ -1,0 +1,37 @@
+"""`pano-pipe bench train`'s comparison: medians per checkout, the ratio, the step parts, and a
+bad --against refused before anything runs."""
+
+from __future__ import annotations
+
+import pytest
+
+from pipeline.bench_train import _markdown, _median, bench_train
+from pipeline.errors import PanoError
+
+
+def _run(its, seconds, psnr, parts):
+    return {"train_seconds": seconds, "iterations": its, "iterations_per_s": its / seconds, "num_gaussians": 1000,
+            "backend": "cpp", "step_seconds": parts, "heldout_psnr": psnr, "render_fps": 3.0, "run_wall_s": 9.0}
+
+
+def test_medians_ratio_and_parts_table(tmp_path):
+    this = [_run(100, s, p, {"render": s / 4, "backward": s / 2}) for s, p in ((10.0, 30.0), (12.0, 30.2), (50.0, 29.0))]
+    other = [_run(100, s, p, None) for s, p in ((20.0, 30.1), (26.0, 30.0), (22.0, 30.3))]
+    m_this, m_other = _median(this), _median(other)
+    assert m_this["iterations_per_s"] == pytest.approx(100 / 12.0)
+    assert m_other["iterations_per_s"] == pytest.approx(100 / 22.0)
+    assert m_this["step_seconds"] == {"render": 3.0, "backward": 6.0}
+    assert m_other["step_seconds"] is None  # an older checkout reports no parts
+    result = {**m_this, "other": m_other, "speedup": m_this["iterations_per_s"] / m_other["iterations_per_s"],
+              "psnr_delta_db": m_this["heldout_psnr"] - m_other["heldout_psnr"], "gpu": None, "device": "cpu",
+              "preset": "paper", "height": 512, "iterations": 100, "repeats": 3,
+              "checkouts": {"this": "/a", "other": "/b"}}
+    md = _markdown(result, tmp_path / "demo", tmp_path / "b")
+    assert "**1.83x**" in md and "-0.10 dB" in md
+    assert "| this | 3.00 | 6.00 |" in md and "--against" in md
+
+
+def test_against_must_be_a_checkout(tmp_path):
+    with pytest.raises(PanoError, match="not a pano-pipe checkout"):
+        bench_train(None, "cpu", "paper", 16, tmp_path / "b.md", tmp_path / "b.json", iterations=1, against=tmp_path)
+    assert not (tmp_path / "b.json").exists()

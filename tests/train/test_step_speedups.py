@@ -1,0 +1,118 @@
+"""The faster training step computes what the plain one did: fused Adam, the one-pass finite
+check, SSIM's closed-form gradient, the skipped black background; and it reports its parts."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+from train_helpers import load_views, rooms, small_config
+
+import splatting
+from gaussians.init import random_points
+from gaussians.losses import ssim
+from gaussians.optim import Adam
+from gaussians.trainer import Trainer, _all_finite, scene_extent
+
+
+class _Params:
+    """The one attribute Adam reads from a Gaussians."""
+
+    def __init__(self, means):
+        self.means = means
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_adam_step_is_the_textbook_update(dtype):
+    torch.manual_seed(0)
+    p = _Params(torch.randn(500, 3, dtype=dtype, requires_grad=True))
+    ref = p.means.detach().clone()
+    m, v = torch.zeros_like(ref), torch.zeros_like(ref)
+    opt, lr, (b1, b2), eps = Adam({"means": 1e-2}), 1e-2, (0.9, 0.999), 1e-15
+    for t in range(1, 6):
+        g = torch.randn_like(ref)
+        p.means.grad = g.clone()
+        opt.step(p)
+        m = b1 * m + (1 - b1) * g
+        v = b2 * v + (1 - b2) * g * g
+        ref = ref - lr / (1 - b1**t) * m / ((v / (1 - b2**t)).sqrt() + eps)
+    tol = 1e-6 if dtype == torch.float32 else 1e-12
+    assert torch.allclose(p.means.detach(), ref, rtol=0, atol=tol)
+    assert torch.allclose(opt.exp_avg["means"], m, atol=tol) and torch.allclose(opt.exp_avg_sq["means"], v, atol=tol)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf"), None])
+def test_all_finite_flags_any_nonfinite_value(bad):
+    ts = [torch.randn(100, 3), torch.randn(7), torch.randn(4, 15, 3)]
+    if bad is not None:
+        ts[2][3, 11, 1] = bad
+    assert bool(_all_finite(ts)) == all(bool(torch.isfinite(t).all()) for t in ts) == (bad is None)
+
+
+def _ssim_autograd(pred, gt, mask=None, window=11, sigma=1.5):
+    """3DGS's SSIM written with plain autograd ops (the full 2D window), the reference."""
+    if mask is not None:
+        m = mask[..., None].to(pred.dtype)
+        pred, gt = pred * m, gt * m
+    pred, gt = pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None]
+    x = torch.arange(window, dtype=pred.dtype) - window // 2
+    g1 = torch.exp(-x * x / (2 * sigma * sigma))
+    g1 = g1 / g1.sum()
+    w = (g1[:, None] * g1[None, :]).expand(3, 1, window, window)
+
+    def blur(t):
+        return F.conv2d(t, w, padding=window // 2, groups=3)
+
+    mu1, mu2 = blur(pred), blur(gt)
+    s1, s2, s12 = blur(pred * pred) - mu1**2, blur(gt * gt) - mu2**2, blur(pred * gt) - mu1 * mu2
+    c1, c2 = 0.01**2, 0.03**2
+    smap = (2 * mu1 * mu2 + c1) * (2 * s12 + c2) / ((mu1**2 + mu2**2 + c1) * (s1 + s2 + c2))
+    if mask is None:
+        return smap.mean()
+    return (smap.mean(1)[0] * mask).sum() / mask.sum()
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_ssim_value_and_gradient_match_autograd(masked):
+    g = torch.Generator().manual_seed(1)
+    gt = torch.rand(24, 40, 3, generator=g, dtype=torch.float64)
+    pred = (gt + 0.2 * torch.randn(24, 40, 3, generator=g, dtype=torch.float64)).clamp(0, 1).requires_grad_(True)
+    mask = torch.rand(24, 40, generator=g) > 0.3 if masked else None
+    a = ssim(pred, gt, mask=mask)
+    b = _ssim_autograd(pred, gt, mask)
+    (ga,) = torch.autograd.grad(a, pred)
+    (gb,) = torch.autograd.grad(b, pred)
+    assert abs(float((a - b).detach())) < 1e-12
+    assert torch.allclose(ga, gb, rtol=1e-9, atol=1e-13)
+    assert torch.autograd.gradcheck(lambda p: ssim(p, gt[:10, :12], mask=None if mask is None else mask[:10, :12]),
+                                    (pred.detach()[:10, :12].clone().requires_grad_(True),))
+
+
+def test_black_background_changes_nothing_and_a_learned_one_gets_its_gradient():
+    torch.manual_seed(0)
+    n = 40
+    means = torch.randn(n, 3) * 0.3 + torch.tensor([0.0, 0.0, 2.0])
+    quats, scales = torch.randn(n, 4), torch.full((n, 3), 0.1)
+    op, col = torch.full((n,), 0.6), torch.rand(n, 3)
+    cam = splatting.EquirectCamera(16, 32)
+    eye = torch.eye(4)
+    plain = splatting.render(means, quats, scales, op, col, eye, cam, backend="cpp")
+    black = splatting.render(means, quats, scales, op, col, eye, cam, backend="cpp", background=torch.zeros(3))
+    assert torch.equal(plain.image, black.image)
+    bg = torch.zeros(3, requires_grad=True)
+    out = splatting.render(means, quats, scales, op, col, eye, cam, backend="cpp", background=bg)
+    out.image.sum().backward()
+    # d(sum)/d(bg_c) = Σ (1 − alpha): the uncovered part of the panorama
+    assert torch.allclose(bg.grad, (1 - plain.alpha).sum().expand(3), rtol=1e-5)
+    assert float(bg.grad[0]) > 0
+
+
+def test_trainer_reports_the_seconds_of_each_part_of_the_step(tiny_room):
+    views = load_views(tiny_room)
+    g = random_points(300, 0, rooms=rooms(tiny_room))
+    tr = Trainer(g, views, small_config(iterations=4, extent=scene_extent(g.means)))
+    tr.train()
+    parts = tr.part_seconds
+    assert list(parts) == ["render", "losses", "backward", "optimiser", "densify", "log"]
+    assert all(v > 0 for v in parts.values())
+    assert sum(parts.values()) <= tr.train_seconds  # the parts lie inside the timed iterations
