@@ -89,7 +89,7 @@ class RayExecutor:
         try:
             import ray
         except ImportError:
-            from pipeline.errors import PanoError
+            from runfs.errors import PanoError
 
             raise PanoError("--executor ray", "Ray is not installed: pip install 'pano-pipe[ray]'") from None
         self._ray = ray
@@ -159,6 +159,6 @@ def make_executor(name: str, address: str | None = None, num_cpus: int | None = 
         return LocalExecutor()
     if name == "ray":
         return RayExecutor(address, num_cpus, retries)
-    from pipeline.errors import PanoError
+    from runfs.errors import PanoError
 
     raise PanoError("--executor", f"must be local or ray, got {name!r}")

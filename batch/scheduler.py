@@ -19,7 +19,7 @@ from batch.executors import Executor
 from batch.jobs import JobOutcome, StageJob, run_stage_job
 from batch.progress import Board
 from batch.scenes import run_folders
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 DONE = ("ran", "cached", "skipped")
 
@@ -68,9 +68,9 @@ def run_batch(scene_dirs: list[Path], out_root: Path, config: dict, config_sourc
     """Run the selected stages of every scene; returns one result per scene, in order. `target`,
     `force` and `force_upstream` as in Engine.run."""
     from pipeline.engine import Engine, select_stages
-    from pipeline.fsutil import run_folder_lock
+    from runfs.fsutil import run_folder_lock
     from pipeline.registry import build_registry
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
 
     registry = build_registry()
     selected = select_stages(registry, target, until)  # an unknown stage fails the whole command

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import torch
 
-from pipeline.errors import PanoError
-from pipeline.fsutil import atomic_write_text
+from runfs.errors import PanoError
+from runfs.fsutil import atomic_write_text
 
 
 def bench_train(scene: Path | None, device: str, preset: str, height: int, out_md: Path, out_json: Path,
@@ -21,7 +21,7 @@ def bench_train(scene: Path | None, device: str, preset: str, height: int, out_m
         raise PanoError("--device", "cuda asked for, but torch sees no CUDA device here (docs/gpu.md)")
     from pipeline.engine import Engine
     from pipeline.registry import build_registry
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
 
     config = {"train": {"preset": preset, "device": device, "height": height}, "evaluate": {"device": device}}
     with tempfile.TemporaryDirectory(prefix="pano-bench-train-") as tmp:

@@ -25,9 +25,9 @@ from rich.text import Text
 from rich.markup import escape
 
 from pipeline.console import console, err_console
-from pipeline.errors import PanoError
-from pipeline.fsutil import LOCK_NAME, run_folder_lock
-from pipeline.paths import check_run_folder, default_run_folder, is_run_folder
+from runfs.errors import PanoError
+from runfs.fsutil import LOCK_NAME, run_folder_lock
+from runfs.paths import check_run_folder, default_run_folder, is_run_folder
 from schemas.scene import REAL_CAPTURE_NADIR_DEG
 
 app = typer.Typer(
@@ -128,7 +128,7 @@ def _override_value(stage: str, param: str, text: str):
 def make_engine(scene_dir: Path, out: Path | None, config_file: Path | None, overrides: list[str] | None):
     from pipeline.engine import Engine
     from pipeline.registry import build_registry
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
 
     scene = load_scene(scene_dir)
     config, source = load_config(config_file, overrides)
@@ -318,14 +318,16 @@ def status(scene: SceneArg, out: OutOpt = None, config: ConfigOpt = None, set_: 
 @app.command()
 def clean(scene: SceneArg, out: OutOpt = None) -> None:
     """Delete the scene's run folder."""
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
 
     s = load_scene(scene, check_images=False)
     out_dir = out if out is not None else default_run_folder(s.name)
     if not out_dir.exists():
         console.print(f"nothing to clean: {escape(str(out_dir))} does not exist", soft_wrap=True)
         return
-    check_run_folder(out_dir, s.root)
+    if out_dir.is_symlink():  # deleting through it would empty the target and leave the link
+        raise PanoError(out_dir, f"is a symbolic link (to {os.readlink(out_dir)}); name the run folder itself")
+    check_run_folder(out_dir, s.root, links_ok=True)
     if not is_run_folder(out_dir):  # an empty folder: nothing of ours to delete
         console.print(f"nothing to clean: {escape(str(out_dir))} holds no pano-pipe run", soft_wrap=True)
         return

@@ -9,7 +9,7 @@ Depth files are kept as metres along the ray. COLMAP models with EQUIRECTANGULAR
 (`import_colmap`) are made upright and metric with sfm.frame, as the poses stage does; the
 scale rules of both importers are in docs/poses.md ("Importers").
 
-The import follows the path rules of `pipeline.paths` (docs/security.md):
+The import follows the path rules of `runfs.paths` (docs/security.md):
 
 - Every frame's `file_path` must resolve inside the folder holding
   transforms.json, after symlinks; an absolute path, '..' or a symlink leading
@@ -19,7 +19,7 @@ The import follows the path rules of `pipeline.paths` (docs/security.md):
   only at the end: a failure leaves no OUT (or the empty OUT there was).
   OUT must be new or an empty folder, and may not overlap the source folder.
 - A view's name is its image's file stem, made into a safe stem
-  (`pipeline.paths.safe_stem`) where it is not one: characters a file name may
+  (`runfs.paths.safe_stem`) where it is not one: characters a file name may
   not hold become '_', leading dots, dashes and spaces are dropped, and long
   stems are cut. Names that then collide (`a/frame.png` and `b/frame.png`,
   `frame.png` and `frame.jpg`, or names differing only in case) are made unique
@@ -43,9 +43,9 @@ import cv2
 import numpy as np
 from pydantic import ValidationError
 
-from pipeline.errors import PanoError, describe_validation_error, read_json
-from pipeline.fsutil import atomic_folder
-from pipeline.paths import (
+from runfs.errors import PanoError, describe_validation_error, read_json
+from runfs.fsutil import atomic_folder
+from runfs.paths import (
     MAX_STEM_BYTES,
     is_inside,
     overlap_problem,
@@ -237,7 +237,7 @@ def _measured_heights(heights: np.ndarray) -> list[float | None]:
 
 def _write_scene(out: Path, manifest: SceneManifest, copies: list[tuple[Path, str]],
                  arrays: dict[str, np.ndarray], extra: Callable[[Path], None] | None = None) -> None:
-    """The scene folder at `out`, written whole or not at all (pipeline.fsutil.atomic_folder):
+    """The scene folder at `out`, written whole or not at all (runfs.fsutil.atomic_folder):
     `copies` are (source file, path in the scene), `arrays` .npy files by path in the scene,
     `extra` writes anything else into the temporary folder."""
     try:

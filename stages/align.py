@@ -30,8 +30,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from panogeom.equirect import angles_to_dirs, column_longitudes, row_latitudes
 from panogeom.surfaces import CEILING, FLOOR, NONE, SURFACE_NAMES, WALL
-from pipeline.errors import PanoError
-from pipeline.scene_loader import valid_mask
+from runfs.errors import PanoError
+from schemas.scene_loader import valid_mask
 from pipeline.stage import StageContext
 from schemas.align import AlignOutput, KindFit
 from schemas.scene import Scene

@@ -24,7 +24,8 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from pipeline.errors import PanoError, load_npy
+from runfs.errors import PanoError
+from runfs.limits import load_npy
 from pipeline.stage import StageContext
 from schemas.depth import DepthOutput, ViewDepth
 from schemas.scene import Scene

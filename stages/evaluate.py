@@ -26,8 +26,9 @@ from evaluation import metrics as M
 from evaluation.model_io import equirect_camera, load_model, render_pose
 from evaluation.visuals import depth_rgb, error_rgb
 from panogeom.images import read_rgb, write_rgb
-from pipeline.errors import PanoError, load_npy
-from pipeline.scene_loader import valid_mask
+from runfs.errors import PanoError
+from runfs.limits import load_npy
+from schemas.scene_loader import valid_mask
 from pipeline.stage import StageContext
 from schemas.evaluate import EvaluateOutput, ViewMetrics
 from schemas.scene import Scene, View

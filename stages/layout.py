@@ -23,7 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from layoutnet import postprocess as pp
 from layoutnet.formats import SuppliedLayout, read_layout
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 from pipeline.stage import StageContext
 from schemas.layout import LayoutOutput, ViewLayout
 from schemas.scene import Scene, View

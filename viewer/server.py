@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from runfs.paths import run_path
 from viewer.data import (
     MODEL_PATH,
     CameraView,
@@ -105,7 +106,7 @@ class ViewerHandle:
         pose = level_pose(c2w) if level else np.asarray(c2w, dtype=np.float64)
         with self._lock:
             out = render_pose(self.model, pose, equirect_camera(height, 2 * height))
-            folder = self.run_dir / VIEW_FOLDER
+            folder = run_path(self.run_dir, VIEW_FOLDER)  # a link planted meanwhile is refused
             folder.mkdir(parents=True, exist_ok=True)
             n = 1 + max([int(p.stem.split("_")[-1]) for p in folder.glob("panorama_[0-9][0-9][0-9][0-9].png")]
                         or [0])

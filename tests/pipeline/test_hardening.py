@@ -19,7 +19,7 @@ import pytest
 
 from pipeline import cli
 from tests.clitools import invoke, run_main
-from pipeline.fsutil import run_folder_lock
+from runfs.fsutil import run_folder_lock
 from simulate.generate import generate_scene
 
 FAST = ["--set", "train.iterations=5", "--set", "train.height=8"]
@@ -320,7 +320,7 @@ def test_model_files_enter_the_key_by_content_and_resolve_from_the_scene(work, c
     from pydantic import BaseModel
 
     from pipeline.engine import Engine
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
     from pipeline.stage import StageSpec
 
     class Params(BaseModel):

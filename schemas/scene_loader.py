@@ -2,36 +2,15 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import cv2
 import numpy as np
 from pydantic import ValidationError
 
-from pipeline.errors import PanoError, describe_validation_error, read_json
+from runfs.errors import PanoError, describe_validation_error, read_json
+from runfs.limits import MIN_IMAGE_HEIGHT, check_image_size, image_size, max_megapixels
 from schemas.scene import Scene, SceneManifest, View
-
-#: Images over this many megapixels are refused before decoding (a 20000x10000 PNG of zeros is
-#: 583 KB on disk and 600 MB decoded). `--max-megapixels` or PANO_PIPE_MAX_MEGAPIXELS change it.
-DEFAULT_MAX_MEGAPIXELS = 64.0
-#: The smallest panorama the stages can use (a pixel is 360/W degrees wide).
-MIN_IMAGE_HEIGHT = 8
-
-
-def max_megapixels() -> float:
-    """The image-size limit in force: the environment's, else the default."""
-    raw = os.environ.get("PANO_PIPE_MAX_MEGAPIXELS")
-    if raw is None:
-        return DEFAULT_MAX_MEGAPIXELS
-    try:
-        value = float(raw)
-    except ValueError:
-        raise PanoError("PANO_PIPE_MAX_MEGAPIXELS", f"must be a number of megapixels, got {raw!r}") from None
-    if not value > 0:
-        raise PanoError("PANO_PIPE_MAX_MEGAPIXELS", f"must be positive, got {raw!r}")
-    return value
-
 
 def load_scene(root: str | Path, check_images: bool = True) -> Scene:
     root = Path(root)
@@ -64,38 +43,6 @@ def load_scene(root: str | Path, check_images: bool = True) -> Scene:
     if manifest.floor_plan:
         scene.path(manifest.floor_plan, "scene.json floor_plan")
     return scene
-
-
-def image_size(path: Path) -> tuple[int, int] | None:
-    """(H, W) from the file header without decoding the pixels, or None if the header is not
-    one Pillow reads (OpenCV then decodes it, under its own size limit)."""
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as im:
-            w, h = im.size
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
-        return None
-    except Image.DecompressionBombError:  # Pillow's own limit; ours is checked by the caller
-        return None
-    return int(h), int(w)
-
-
-def check_image_size(path: Path, limit_mp: float, min_height: int = MIN_IMAGE_HEIGHT) -> tuple[int, int] | None:
-    """Refuse an image over `limit_mp` megapixels (or under `min_height` rows) from its header."""
-    from PIL import Image
-
-    Image.MAX_IMAGE_PIXELS = None  # Pillow would warn or refuse on its own terms; ours is clearer
-    hw = image_size(path)
-    if hw is None:
-        return None
-    h, w = hw
-    if h * w > limit_mp * 1e6:
-        raise PanoError(path, f"image is {w}x{h} ({h * w / 1e6:.0f} megapixels), over the limit of "
-                              f"{limit_mp:g}; resize it, or raise --max-megapixels")
-    if h < min_height:
-        raise PanoError(path, f"image is {w}x{h}; panoramas need at least {min_height} rows")
-    return hw
 
 
 def check_panorama(path: Path, named_by: str, limit_mp: float | None = None) -> tuple[int, int]:

@@ -75,7 +75,7 @@ def sha256_json(obj) -> str:
 def open_no_follow(path: Path, flags: int) -> int:
     """os.open that refuses a symbolic link at `path`: a run folder's own files are written in
     place, and a planted link would carry those writes out of the folder."""
-    from pipeline.errors import PanoError
+    from runfs.errors import PanoError
 
     try:
         return os.open(path, flags | os.O_NOFOLLOW, 0o644)
@@ -100,7 +100,7 @@ def run_folder_lock(folder: Path) -> Iterator[None]:
     process ends, however it ends, so a killed run never leaves a stale lock behind."""
     import fcntl
 
-    from pipeline.errors import PanoError
+    from runfs.errors import PanoError
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
