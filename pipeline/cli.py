@@ -12,6 +12,12 @@ import os
 # than 1 on a shared 2-core machine (docs/training.md); must be set before torch loads.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+from pipeline import signals  # noqa: E402
+
+# pycolmap takes SIGTERM when imported (glog); imported now, before torch and OpenCV start threads,
+# a signal meanwhile waits for our handler (pipeline/signals.py)
+signals.load_native_early()
+
 import json  # noqa: E402
 import shutil
 import sys
@@ -541,12 +547,19 @@ def _register_commands() -> None:
 _register_commands()
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, handled like Ctrl-C: stages clean up, training checkpoints, exit code 130."""
+INTERRUPTED = "interrupted: finished results are kept; the unfinished one left nothing behind"
 
 
-def _on_sigterm(signum, frame) -> None:
-    raise Terminated()
+def _interrupted_inside(e: BaseException) -> bool:
+    """Whether a KeyboardInterrupt (Ctrl-C, SIGTERM) caused `e`: pybind11 turns one raised while a
+    native module initialises into ImportError('initialization failed')."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
 
 
 def _one_line(text: str) -> str:
@@ -587,12 +600,8 @@ def _quiet_opencv() -> None:
 def main() -> None:
     """Console entry point. Exit codes: 0 success, 1 internal error, 2 bad input (one line naming
     the file and the problem), 130 interrupted (Ctrl-C or SIGTERM). --debug shows tracebacks."""
-    import signal
-    import threading
-
     _quiet_opencv()
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, _on_sigterm)
+    signals.install()  # SIGTERM like Ctrl-C, kept across native imports (pycolmap takes it)
     try:
         code = app(standalone_mode=False)
         if code == 130:  # typer turns Ctrl-C into this return value, silently, when not standalone
@@ -609,7 +618,7 @@ def main() -> None:
     except _click_exceptions("Exit") as e:
         sys.exit(e.exit_code)
     except (KeyboardInterrupt, *_click_exceptions("Abort")):
-        err_console.print("interrupted: finished stages are kept, the running one left its old result")
+        err_console.print(INTERRUPTED)
         sys.exit(130)
     except _click_exceptions("ClickException") as e:  # usage errors: one line, bad input
         _fail(e.format_message(), 2)
@@ -623,6 +632,9 @@ def main() -> None:
             raise
         _fail("input nested too deeply (rerun with --debug for the traceback)", 2)
     except Exception as e:  # unexpected failures: a bug of ours
+        if _interrupted_inside(e):  # Ctrl-C / SIGTERM inside a native import or a library that wraps it
+            err_console.print(INTERRUPTED)
+            sys.exit(130)
         if _state["debug"]:
             raise
         _fail(f"{type(e).__name__}: {e} (an internal error; rerun with --debug for the traceback)", 1)

@@ -551,6 +551,9 @@ def _read_colmap(model_dir: Path):
     """The pycolmap.Reconstruction in `model_dir` (binary or text), or a one-line PanoError."""
     import pycolmap
 
+    from sfm.reconstruct import quiet_colmap
+
+    quiet_colmap()  # its own log of a corrupt file would precede our one line
     if not model_dir.is_dir():
         raise PanoError(model_dir, "COLMAP model folder does not exist" if not model_dir.exists() else
                                    "not a folder; give the folder holding cameras/images/points3D .bin or .txt")

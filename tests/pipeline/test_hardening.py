@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from pipeline import cli
+from pipeline.signals import Terminated
 from tests.clitools import invoke, run_main
 from runfs.fsutil import run_folder_lock
 from simulate.generate import generate_scene
@@ -159,7 +160,7 @@ def test_unicode_view_names_are_fine(work, capsys):
 
 
 # ----------------------------------------------------------------------------- #5 exit codes
-@pytest.mark.parametrize("exc", [KeyboardInterrupt, lambda: __import__("typer").Exit(130), cli.Terminated])
+@pytest.mark.parametrize("exc", [KeyboardInterrupt, lambda: __import__("typer").Exit(130), Terminated])
 def test_interrupts_exit_130(work, exc, monkeypatch, capsys):
     from pipeline.engine import Engine
 
