@@ -179,6 +179,8 @@ def run(
         "--address", help="Ray cluster address (default: start a local Ray instance).")] = None,
     retries: Annotated[int, typer.Option(
         "--retries", min=0, help="Ray: times a stage whose worker died is retried.")] = 2,
+    connect_timeout: Annotated[float, typer.Option(
+        "--connect-timeout", min=0.1, help="Ray: seconds to wait for the cluster at --address.")] = 30.0,
 ) -> None:
     """Run the pipeline (`all`) or one stage (rerun, with anything stale upstream), on one scene
     or a batch of scenes (exit code 1 when any scene failed)."""
@@ -186,7 +188,7 @@ def run(
 
     if is_batch(scenes) or executor != "local" or address is not None:
         return _run_batch(stage, expand_scenes(scenes), out, config, set_, force, until, resume, executor,
-                          address, retries, force_upstream)
+                          address, retries, force_upstream, connect_timeout)
     scene = scenes[0]
     engine = make_engine(scene, out, config, set_)
     target = None if stage == "all" else stage
@@ -248,7 +250,7 @@ def print_run_summary(engine, scene_arg: Path, finished: list[str]) -> None:
 
 def _run_batch(stage: str, scenes: list[Path], out: Path | None, config: Path | None, set_: list[str] | None,
                force: bool, until: str | None, resume: bool, executor_name: str, address: str | None,
-               retries: int, force_upstream: bool) -> int:
+               retries: int, force_upstream: bool, connect_timeout: float = 30.0) -> int:
     from batch.executors import make_executor
     from batch.progress import console as batch_console
     from batch.progress import summary_table
@@ -256,7 +258,7 @@ def _run_batch(stage: str, scenes: list[Path], out: Path | None, config: Path | 
 
     cfg, source = load_config(config, set_)
     target = None if stage == "all" else stage
-    executor = make_executor(executor_name, address=address, retries=retries)
+    executor = make_executor(executor_name, address=address, retries=retries, connect_timeout=connect_timeout)
     try:
         results = run_batch(scenes, out if out is not None else Path("runs"), cfg, source, executor,
                             target=target, until=until, force=force, resume=resume,
