@@ -45,6 +45,7 @@ from pydantic import ValidationError
 
 from runfs.errors import PanoError, describe_validation_error, read_json
 from runfs.fsutil import atomic_folder
+from runfs.limits import check_colmap_binary, load_npy, read_image
 from runfs.paths import (
     MAX_STEM_BYTES,
     is_inside,
@@ -381,9 +382,9 @@ def _nerfstudio_depth(path: Path, unit: float, field: str) -> np.ndarray:
     along the ray, as ours is: only the unit changes."""
     try:
         if path.suffix.lower() == ".npy":
-            raw = np.load(path, allow_pickle=False)
+            raw = load_npy(path, pixels=True)
         else:
-            raw = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH)
+            raw = read_image(path, cv2.IMREAD_ANYDEPTH, what=f"depth map (named by {field})")
             if raw is None:
                 raise PanoError(path, f"unreadable depth image (named by {field})")
     except (OSError, ValueError) as e:
@@ -560,6 +561,8 @@ def _read_colmap(model_dir: Path):
     for stem in _MODEL_FILES:
         if not any((model_dir / f"{stem}{ext}").is_file() for ext in (".bin", ".txt")):
             raise PanoError(model_dir / f"{stem}.bin", "missing (neither .bin nor .txt): not a COLMAP sparse model")
+    if any((model_dir / f"{stem}.bin").is_file() for stem in _MODEL_FILES):
+        check_colmap_binary(model_dir)  # pycolmap allocates what the counts claim before reading
     try:
         return pycolmap.Reconstruction(model_dir)
     except Exception as e:  # pycolmap raises bare RuntimeErrors / ValueErrors on corrupt files

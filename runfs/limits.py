@@ -120,13 +120,14 @@ def check_image_size(path: Path, limit_mp: float | None = None, min_height: int 
     return hw
 
 
-def read_image(path: Path, flags: int | None = None, what: str = "image", min_height: int = 1):
+def read_image(path: Path, flags: int | None = None, what: str = "image", min_height: int = 1,
+               limit_mp: float | None = None):
     """cv2.imread under the size limit (checked from the header first); None if OpenCV cannot
     decode it. A file whose header we cannot read is still decoded by OpenCV, whose own limit
     (CV_IO_MAX_IMAGE_PIXELS, set to ours in `quiet_decoders`) then applies."""
     import cv2
 
-    check_image_size(path, min_height=min_height, what=what)
+    check_image_size(path, limit_mp, min_height=min_height, what=what)
     return cv2.imread(str(path), cv2.IMREAD_UNCHANGED if flags is None else flags)
 
 
@@ -198,8 +199,8 @@ def check_ply_count(path: Path, count: int, record_bytes: int, data_bytes: int, 
     vertex (binary), or at least 2 bytes per value (ASCII: a digit and a separator)."""
     need = count * (2 * ascii_values if ascii_values else record_bytes)
     if count < 0 or need > data_bytes:
-        raise PanoError(path, f"PLY header claims {count} vertices, more than the file's {data_bytes} "
-                              "bytes of data hold")
+        raise PanoError(path, f"truncated or not a PLY we read: its header claims {count} vertices, more "
+                              f"than the file's {data_bytes} bytes of data hold")
 
 
 # ----------------------------------------------------------------------------- COLMAP

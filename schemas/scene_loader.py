@@ -9,7 +9,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from runfs.errors import PanoError, describe_validation_error, read_json
-from runfs.limits import MIN_IMAGE_HEIGHT, check_image_size, image_size, max_megapixels
+from runfs.limits import MIN_IMAGE_HEIGHT, check_image_size, image_size, max_megapixels, read_image
 from schemas.scene import Scene, SceneManifest, View
 
 def load_scene(root: str | Path, check_images: bool = True) -> Scene:
@@ -49,9 +49,7 @@ def check_panorama(path: Path, named_by: str, limit_mp: float | None = None) -> 
     """Return (H, W) of an equirectangular image, or raise naming the problem."""
     if not path.is_file():
         raise PanoError(path, f"image missing (named by {named_by})")
-    limit_mp = max_megapixels() if limit_mp is None else limit_mp
-    check_image_size(path, limit_mp)
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img = read_image(path, min_height=MIN_IMAGE_HEIGHT, limit_mp=limit_mp)
     if img is None:
         raise PanoError(path, "unreadable image (not a format OpenCV can decode)")
     h, w = img.shape[:2]
@@ -67,7 +65,7 @@ def check_panorama(path: Path, named_by: str, limit_mp: float | None = None) -> 
 def read_mask(path: Path, image_size: tuple[int, int]) -> np.ndarray:
     """A mask file as [H,W] bool (non-zero = valid) at its image's size `image_size` (H, W);
     unreadable, of another size, or masking out everything: a one-line PanoError."""
-    m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    m = read_image(path, what="mask")
     if m is None:
         raise PanoError(path, "unreadable mask (not a format OpenCV can decode)")
     if m.shape[:2] != tuple(image_size):
@@ -100,7 +98,7 @@ def valid_mask(scene: Scene, view: View, height: int, width: int) -> np.ndarray 
 
 
 def _decoded_size(path: Path) -> tuple[int, int]:
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img = read_image(path)
     if img is None:
         raise PanoError(path, "unreadable image (not a format OpenCV can decode)")
     return img.shape[:2]

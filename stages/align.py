@@ -31,6 +31,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from panogeom.equirect import angles_to_dirs, column_longitudes, row_latitudes
 from panogeom.surfaces import CEILING, FLOOR, NONE, SURFACE_NAMES, WALL
 from runfs.errors import PanoError
+from runfs.limits import load_npy
 from schemas.scene_loader import valid_mask
 from pipeline.stage import StageContext
 from schemas.align import AlignOutput, KindFit
@@ -431,7 +432,7 @@ def run(ctx: StageContext[Params]) -> AlignOutput:
     views: list[_ViewData] = []
     for vd in depth_in.data.views:
         path = depth_in.path(vd.depth)
-        values = np.load(path).astype(np.float32, copy=False)
+        values = load_npy(path, pixels=True).astype(np.float32, copy=False)
         if values.ndim != 2:
             raise PanoError(path, f"expected an [H,W] depth map, got shape {list(values.shape)}")
         view = ctx.scene.manifest.view(vd.view)
