@@ -69,6 +69,10 @@ def _main(
     ] = None,
 ) -> None:
     _state["debug"] = debug
+    if debug:  # main() keeps library warnings off stderr; --debug shows them
+        import warnings
+
+        warnings.simplefilter("default")
     if max_megapixels is not None:
         os.environ["PANO_PIPE_MAX_MEGAPIXELS"] = repr(max_megapixels)
 
@@ -138,7 +142,7 @@ def make_engine(scene_dir: Path, out: Path | None, config_file: Path | None, ove
 
     scene = load_scene(scene_dir)
     config, source = load_config(config_file, overrides)
-    out_dir = out if out is not None else default_run_folder(scene.name)
+    out_dir = out if out is not None else default_run_folder(scene.name, scene.root)
     return Engine(scene, out_dir, build_registry(), config, config_source=source)
 
 
@@ -329,7 +333,7 @@ def clean(scene: SceneArg, out: OutOpt = None) -> None:
     from schemas.scene_loader import load_scene
 
     s = load_scene(scene, check_images=False)
-    out_dir = out if out is not None else default_run_folder(s.name)
+    out_dir = out if out is not None else default_run_folder(s.name, s.root)
     if not out_dir.exists():
         console.print(f"nothing to clean: {escape(str(out_dir))} does not exist", soft_wrap=True)
         return
@@ -599,10 +603,20 @@ def _quiet_opencv() -> None:
         cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
 
 
+def _quiet_warnings() -> None:
+    """Library warnings (numpy's RuntimeWarnings on overflow or NaN, deprecations) are not for the
+    user of a command: stderr holds the error line only, and pano-pipe reports what matters itself
+    (ctx.warn, on stdout). --debug shows them."""
+    import warnings
+
+    warnings.simplefilter("ignore")
+
+
 def main() -> None:
     """Console entry point. Exit codes: 0 success, 1 internal error, 2 bad input (one line naming
     the file and the problem), 130 interrupted (Ctrl-C or SIGTERM). --debug shows tracebacks."""
     _quiet_opencv()
+    _quiet_warnings()
     signals.install()  # SIGTERM like Ctrl-C, kept across native imports (pycolmap takes it)
     try:
         code = app(standalone_mode=False)

@@ -192,7 +192,7 @@ def _check_out(out: Path, sources: dict[str, Path]) -> None:
         if problem:
             raise PanoError(out, f"output folder {problem} the source folder {base} (holding {what}); "
                                  "choose an OUT outside it")
-    if overlap_problem(out, Path.cwd()) in ("is the same folder", "contains"):
+    if overlap_problem(out, Path.cwd()) in ("is", "contains"):
         raise PanoError(out, "output folder is (or contains) the working folder; "
                              "choose a new or empty folder")
     if out.exists() or out.is_symlink():

@@ -123,20 +123,12 @@ def check_image_size(path: Path, limit_mp: float | None = None, min_height: int 
 def read_image(path: Path, flags: int | None = None, what: str = "image", min_height: int = 1,
                limit_mp: float | None = None):
     """cv2.imread under the size limit (checked from the header first); None if OpenCV cannot
-    decode it. A file whose header we cannot read is still decoded by OpenCV, whose own limit
-    (CV_IO_MAX_IMAGE_PIXELS, set to ours in `quiet_decoders`) then applies."""
+    decode it. A file whose header we cannot read is left to OpenCV, under its own limit
+    (CV_IO_MAX_IMAGE_PIXELS, 2^30 pixels by default)."""
     import cv2
 
     check_image_size(path, limit_mp, min_height=min_height, what=what)
     return cv2.imread(str(path), cv2.IMREAD_UNCHANGED if flags is None else flags)
-
-
-def opencv_pixel_limit() -> int:
-    """OpenCV's own decode limit, set to ours before cv2 is imported (CV_IO_MAX_IMAGE_PIXELS)."""
-    try:
-        return int(max_megapixels() * 1e6)
-    except PanoError:
-        return int(DEFAULT_MAX_MEGAPIXELS * 1e6)
 
 
 # ----------------------------------------------------------------------------- .npy

@@ -225,6 +225,18 @@ def mark_run_folder(out_dir: Path, scene_root: Path) -> None:
         marker.write_text(json.dumps({"made_by": "pano-pipe", "scene": str(Path(scene_root).resolve())}) + "\n")
 
 
-def default_run_folder(scene_name: str) -> Path:
+def run_folder_name(scene_name: str, scene_root: Path | None = None) -> str:
+    """The name of a scene's run folder (runs/<name>/, a batch's OUT/<name>/): its scene name,
+    which must be a safe stem. The name comes from scene.json, else from the folder's name, which
+    nothing checked before (`scan 10:30`, `-x`, `.x`)."""
+    problem = stem_problem(scene_name)
+    if problem:
+        raise PanoError(scene_root, f"the scene name {shorten(scene_name)} (scene.json \"name\", else the "
+                                    f"folder's name) names its run folder, and it {problem}; set a \"name\" in "
+                                    "scene.json (or give --out)")
+    return scene_name
+
+
+def default_run_folder(scene_name: str, scene_root: Path | None = None) -> Path:
     """runs/<scene-name>/ under the working folder (the name is a checked stem)."""
-    return Path("runs") / safe_stem(scene_name)
+    return Path("runs") / run_folder_name(scene_name, scene_root)

@@ -35,7 +35,7 @@ def resolve_target(path: Path, out: Path | None = None) -> Target:
     path = Path(path)
     if (path / "scene.json").is_file():
         scene = load_scene(path, check_images=False)
-        run_dir = Path(out) if out is not None else default_run_folder(scene.name)
+        run_dir = Path(out) if out is not None else default_run_folder(scene.name, scene.root)
     elif path.is_dir() and is_run_folder(path):
         if out is not None and Path(out).resolve() != path.resolve():
             raise PanoError(out, f"--out given with a run folder ({path}); give one or the other")
