@@ -196,9 +196,9 @@ def check_ply_count(path: Path, count: int, record_bytes: int, data_bytes: int, 
 
 
 # ----------------------------------------------------------------------------- COLMAP
-#: Parameters per COLMAP camera model id (colmap/sensor/models.h).
-_COLMAP_PARAMS = {0: 3, 1: 4, 2: 4, 3: 5, 4: 8, 5: 8, 6: 12, 7: 5, 8: 4, 9: 5, 10: 12, 11: 0, 12: 12,
-                  13: 10, 14: 8, 15: 4, 16: 0}
+#: Parameters per COLMAP camera model id (colmap/sensor/models.h; pycolmap 4.2).
+_COLMAP_PARAMS = {0: 3, 1: 4, 2: 4, 3: 5, 4: 8, 5: 8, 6: 12, 7: 5, 8: 4, 9: 5, 10: 12, 11: 16, 12: 4,
+                  13: 5, 14: 3, 15: 4, 16: 6, 17: 2}
 
 
 class _Reader:
