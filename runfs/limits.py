@@ -17,6 +17,7 @@ importers, export and the viewer (docs/security.md, "Limits").
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import struct
@@ -128,7 +129,30 @@ def read_image(path: Path, flags: int | None = None, what: str = "image", min_he
     import cv2
 
     check_image_size(path, limit_mp, min_height=min_height, what=what)
-    return cv2.imread(str(path), cv2.IMREAD_UNCHANGED if flags is None else flags)
+    with _native_stderr_off():  # libpng prints "libpng error: ..." itself; the caller says it in one line
+        return cv2.imread(str(path), cv2.IMREAD_UNCHANGED if flags is None else flags)
+
+
+@contextlib.contextmanager
+def _native_stderr_off():
+    """File descriptor 2 pointed at /dev/null for the block: decoders' C libraries write their own
+    messages there, which the one-line error contract does not allow."""
+    import sys
+
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):
+        yield
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 2)
+    os.close(devnull)
+    try:
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 # ----------------------------------------------------------------------------- .npy

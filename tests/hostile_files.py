@@ -17,8 +17,9 @@ def png(width: int, height: int, bit_depth: int = 8, colour: int = 0, rows: int 
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
     channels = {0: 1, 2: 3, 4: 2, 6: 4}[colour]
-    row = b"\x00" + b"\x00" * (width * channels * bit_depth // 8)
-    idat = zlib.compress(row * max(0, min(rows, height)), 9)
+    row_bytes = 1 + width * channels * bit_depth // 8
+    rows = max(0, min(rows, height, (1 << 20) // row_bytes))  # at most 1 MB to compress here
+    idat = zlib.compress(b"\x00" * (row_bytes * rows), 9)
     ihdr = struct.pack(">IIBBBBB", width, height, bit_depth, colour, 0, 0, 0)
     return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
 
