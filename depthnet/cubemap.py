@@ -153,6 +153,10 @@ def align_faces(
         keep = new_keep
     scales = x[:6]
     shifts = x[6:] if affine else np.zeros(6)
+    if not (np.all(np.isfinite(x)) and np.all(scales > 0)):
+        # The faces contradict each other (a model that does not generalise to these views):
+        # a sign flip would invalidate whole faces, so keep them as predicted and let align fit.
+        return np.ones(6), np.zeros(6)
     return scales, shifts
 
 

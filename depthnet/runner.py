@@ -30,6 +30,9 @@ from runfs.errors import PanoError
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
+# ONNX metadata keys pano-pipe's exporters write (depthnet/depth_anything.py): the contract, the network.
+CONTRACT_METADATA_KEY = "pano_pipe.depth_contract"
+MODEL_METADATA_KEY = "pano_pipe.depth_model"
 
 
 class DepthContract(BaseModel):
@@ -73,6 +76,27 @@ class DepthContract(BaseModel):
     )
 
 
+def write_metadata(onnx_path: str | Path, contract: dict, network: dict | None = None) -> None:
+    """Record a depth contract (DepthContract fields) and what the network is in an ONNX file's
+    metadata, so the depth stage runs it without settings."""
+    import json
+
+    import onnx
+
+    DepthContract(**contract)  # refuse a contract the stage could not read back
+    proto = onnx.load(str(onnx_path))
+    entries = {CONTRACT_METADATA_KEY: json.dumps(contract)}
+    if network is not None:
+        entries[MODEL_METADATA_KEY] = json.dumps(network)
+    kept = [e for e in proto.metadata_props if e.key not in entries]
+    del proto.metadata_props[:]
+    proto.metadata_props.extend(kept)
+    for key, value in entries.items():
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.save(proto, str(onnx_path))
+
+
 def _static(dim) -> int | None:
     return dim if isinstance(dim, int) and dim > 0 else None
 
@@ -85,12 +109,19 @@ class OnnxDepthModel:
     """An onnxruntime session with its contract; `predict(rgb)` returns the raw output map."""
 
     def __init__(
-        self, path: str | Path, contract: DepthContract, threads: int = 2, providers: list[str] | None = None
+        self,
+        path: str | Path,
+        contract: DepthContract | None = None,
+        threads: int = 2,
+        providers: list[str] | None = None,
+        overrides: dict | None = None,
     ):
+        """`contract` given: used as is. Else the contract the model's metadata records (pano-pipe's
+        exports write it, key `pano_pipe.depth_contract`), with `overrides` (the user's settings) on
+        top, and DepthContract's defaults for the rest."""
         import onnxruntime as ort
 
         self.path = Path(path)
-        self.contract = contract
         if not self.path.is_file():
             raise PanoError(self.path, "depth model not found")
         opts = ort.SessionOptions()
@@ -107,6 +138,9 @@ class OnnxDepthModel:
         except Exception as exc:  # onnxruntime raises its own types; the user needs one line
             msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise PanoError(self.path, f"not a loadable ONNX model ({msg[:200]})") from None
+        self.metadata = dict(self.session.get_modelmeta().custom_metadata_map)
+        self.contract = contract if contract is not None else self._contract(overrides or {})
+        c = self.contract
         inputs = self.session.get_inputs()
         if len(inputs) != 1:
             raise PanoError(self.path, f"depth model must take one input (an image), it takes {len(inputs)}")
@@ -117,21 +151,21 @@ class OnnxDepthModel:
             raise PanoError(self.path, f"model input must have 3 channels (NCHW RGB), got shape {shape}")
         self.input_name = inputs[0].name
         self.static_hw = (_static(shape[2]), _static(shape[3]))
-        m = contract.multiple_of
+        m = c.multiple_of
         for side in self.static_hw:
             if side is not None and side % m:
                 raise PanoError(self.path, f"model input side {side} is not a multiple of {m} (multiple_of)")
-        if contract.input_size is not None:
-            ih, iw = contract.input_size
+        if c.input_size is not None:
+            ih, iw = c.input_size
             if ih % m or iw % m:
-                raise PanoError(self.path, f"input_size {contract.input_size} is not a multiple of {m}")
+                raise PanoError(self.path, f"input_size {c.input_size} is not a multiple of {m}")
             for want, have in zip((ih, iw), self.static_hw, strict=True):
                 if have is not None and have != want:
                     raise PanoError(
                         self.path,
-                        f"model input is fixed at {shape}, input_size says {list(contract.input_size)}",
+                        f"model input is fixed at {shape}, input_size says {list(c.input_size)}",
                     )
-        if contract.projection == "equirect":
+        if c.projection == "equirect":
             h, w = self.static_hw
             if h is not None and w is not None and w != 2 * h:
                 raise PanoError(
@@ -151,6 +185,30 @@ class OnnxDepthModel:
                 self.path, f"model output must be a depth map [1,H,W] or [1,1,H,W], got shape {oshape}"
             )
         self.output_name = outputs[0].name
+
+    def _contract(self, overrides: dict) -> DepthContract:
+        import json
+
+        raw = self.metadata.get(CONTRACT_METADATA_KEY)
+        recorded = {}
+        if raw:
+            try:
+                recorded = json.loads(raw)
+                DepthContract(**recorded)
+            except (ValueError, TypeError) as e:
+                msg = " ".join(str(e).split())[:200]
+                raise PanoError(self.path, f"unreadable depth contract in the metadata: {msg}") from None
+        return DepthContract(**{**recorded, **overrides})
+
+    @property
+    def description(self) -> dict:
+        """What the exporter recorded about the network (`pano_pipe.depth_model`), or {}."""
+        import json
+
+        try:
+            return json.loads(self.metadata.get(MODEL_METADATA_KEY, "{}"))
+        except ValueError:
+            return {}
 
     # -- sizes ---------------------------------------------------------------
     def input_hw(self, image_hw: tuple[int, int]) -> tuple[int, int]:

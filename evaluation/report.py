@@ -25,11 +25,21 @@ from pathlib import Path
 
 import numpy as np
 
+from evaluation.report_sections import STAGE_SECTIONS, SectionContext, export_links, settings_section, \
+    settings_without_effect
 from runfs.errors import PanoError
 from runfs.limits import load_npy
 from runfs.paths import run_path
 
-STAGE_ORDER = ("layout", "depth", "union", "sampling", "align", "train", "evaluate")
+
+def stage_order() -> tuple[str, ...]:
+    """The pipeline's stages in DAG order (pipeline/registry.py), as `run` executes them."""
+    from pipeline.engine import topological_order
+    from pipeline.registry import build_registry
+
+    return tuple(topological_order(build_registry()))
+
+
 METRIC_LABELS = {
     "psnr": "PSNR (dB) ↑",
     "ssim": "SSIM ↑",
@@ -117,8 +127,9 @@ def stage_durations(run_dir: Path) -> list[dict]:
     """Per stage: last duration from its artifact, the number of runs and total seconds in run_log.jsonl."""
     log = read_jsonl(run_dir / "run_log.jsonl")
     rows = []
-    stages = list(STAGE_ORDER) + sorted(
-        {r.get("stage") for r in log if r.get("stage") and r.get("stage") not in STAGE_ORDER}
+    order = stage_order()
+    stages = list(order) + sorted(
+        {r.get("stage") for r in log if isinstance(r.get("stage"), str) and r.get("stage") not in order}
     )
     for s in stages:
         art = read_artifact(run_dir, s)
@@ -342,8 +353,9 @@ def plot_floor_plan(scene, path: Path, rooms: list[dict] | None = None) -> list[
 
 def stage_params(run_dir: Path) -> dict[str, dict]:
     """{stage: meta.params} of every stage with an artifact, in pipeline order."""
-    names = list(STAGE_ORDER) + sorted(
-        p.parent.name for p in run_dir.glob("*/artifact.json") if p.parent.name not in STAGE_ORDER
+    order = stage_order()
+    names = list(order) + sorted(
+        p.parent.name for p in run_dir.glob("*/artifact.json") if p.parent.name not in order
     )
     out = {}
     for s in names:
@@ -387,6 +399,7 @@ def run_links(run_dir: Path, out_dir: Path, config_path: Path) -> list[tuple[str
         if video.name.startswith("."):
             continue  # a render still being written (hidden temporary file)
         items.append((video, f"fly-through video {video.name}"))
+    items += export_links(run_dir)
     items.append((config_path, "configuration: every stage's parameters (YAML)"))
     items.append((run_dir / "run_log.jsonl", "run log (run_log.jsonl)"))
     log = run_path(run_dir / "train", train_data.get("log") or "train_log.jsonl", named_by="train/artifact.json")
@@ -488,6 +501,12 @@ def view_images(edir: Path, v: dict, scene, view, img_dir: Path) -> tuple[list[t
     write_rgb(gt_png, depth_rgb(gt, vmax=dmax))
     items.append((gt_png, f"ground-truth depth, 0 … {dmax:.3g} m", cbar("gt-depth", 0.0, dmax, "turbo", DEPTH_UNITS)))
     err, valid = depth_error(depth, gt)
+    from schemas.scene_loader import valid_mask
+
+    kept = valid_mask(scene, view, *depth.shape)  # the metrics' mask: masked pixels are grey here too
+    if kept is not None:
+        valid &= kept
+        err = np.where(kept, err, np.nan)
     emax = depth_error_vmax(err)
     err_png = img_dir / f"{prefix}-depth-error.png"
     write_rgb(err_png, depth_error_rgb(err, emax))
@@ -563,6 +582,14 @@ class _Doc:
             self.md.append("| " + " | ".join(md_text(c).replace("|", "\\|") for c in r) + " |")
         self.md.append("")
 
+    def details(self, summary: str, header: list[str], rows: list[list[str]]) -> None:
+        """A table folded away under a one-line summary (<details>; GitHub's Markdown renders it too)."""
+        self.html.append(f"<details><summary>{html.escape(summary)}</summary>")
+        self.md.append(f"<details><summary>{html.escape(summary)}</summary>\n")
+        self.table(header, rows)
+        self.html.append("</details>")
+        self.md.append("</details>\n")
+
     def links(self, items: list[tuple[str, str]]) -> None:
         """A bullet list of (relative href, text) links to files of the run."""
         lis = "".join(f'<li><a href="{html.escape(href)}">{html.escape(text)}</a></li>' for href, text in items)
@@ -623,6 +650,7 @@ figure img.cbar{image-rendering:auto;border:none}figcaption{font-size:.8em;color
 .row:not(.single) figure{max-width:calc(25% - 6px)}
 .single figure{flex:0 1 760px}
 .warn{background:#fff4d6;border-left:4px solid #e0a800;padding:.5em}.note{color:#666}
+details{margin:1em 0}details summary{cursor:pointer;color:#245}
 """
 
 
@@ -661,6 +689,8 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
         doc.p("No files of the run yet (model, videos, configuration, run log).", "warn")
     links = [href for href, _ in link_items]
 
+    not_applied = settings_without_effect(run_dir, scene)  # named where each setting is shown
+
     # -- metrics
     ev = read_artifact(run_dir, "evaluate")
     from evaluation.visuals import DEPTH_ERROR_UNITS, DEPTH_UNITS, ERROR_UNITS, ERROR_VMAX
@@ -690,7 +720,8 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
         doc.h(2, "Views: ground truth / render / error / depth", "views")
         sections.append("views")
         doc.p("Every false-colour map has its colour bar, with units and range, under it. Error maps: "
-              f"{ERROR_UNITS}, inferno, fixed scale 0 … {ERROR_VMAX:g} so they compare across views and runs. "
+              f"{ERROR_UNITS}, inferno, fixed scale 0 … {ERROR_VMAX:g} so they compare across views and "
+              "runs; grey = pixels the metrics leave out (the view's mask, the nadir cap). "
               f"Depth: {DEPTH_UNITS}, turbo, 0 … the rendered depth's 99th percentile (ground-truth depth on "
               "the same scale); black = nothing rendered / no depth. Depth error: "
               f"{DEPTH_ERROR_UNITS}, inferno, 0 … its 99th percentile; grey = no ground truth.", "note")
@@ -709,12 +740,15 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
         doc.p("No training artifact: run `pano-pipe run train SCENE`.", "warn")
     else:
         td = tr["data"]
+        reg_note = not_applied.get(("train", "layout_reg"))
         summary = [
             ["iterations", _fmt(td.get("iterations"))], ["Gaussians", _fmt(td.get("num_gaussians"))],
             ["training seconds", _fmt(td.get("train_seconds"))],
             ["resolution (H×W)", "×".join(str(x) for x in td.get("resolution", []))],
             ["init", _fmt(td.get("init"))], ["projection", _fmt(td.get("projection"))],
-            ["layout regularisation", _fmt(td.get("layout_reg"))], ["λ layout", _fmt(td.get("lambda_layout"))],
+            ["layout regularisation",
+             _fmt(td.get("layout_reg")) + (f" (not applied: {reg_note})" if reg_note else "")],
+            ["λ layout", _fmt(td.get("lambda_layout"))],
             ["preset", _fmt(td.get("preset"))], ["backend", _fmt(td.get("backend"))],
             ["final train PSNR", _fmt(td.get("final_train_psnr"))],
         ]
@@ -774,16 +808,16 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
     else:
         doc.p("No floor plan: run the union stage.", "warn")
 
-    # -- configuration
-    doc.h(2, "Configuration", "config")
-    if params:
+    # -- what each stage did (layout, depth alignment, ...): present only when the stage ran
+    section_ctx = SectionContext(run_dir=run_dir, scene=scene, out_dir=out_dir, img_dir=img_dir)
+    for section in STAGE_SECTIONS:
+        section_id = section(doc, section_ctx)
+        if section_id:
+            sections.append(section_id)
+
+    # -- configuration: non-default values first, the full table folded; settings without effect named
+    if settings_section(doc, params, not_applied):
         sections.append("config")
-        doc.p("The parameters each stage ran with (its artifact's meta.params); the same as YAML in "
-              "config.yaml beside this report.")
-        doc.table(["stage", "parameter", "value"],
-                  [[st, k, v] for st, p in params.items() for k, v in (flatten_params(p) or [("(none recorded)", "")])])
-    else:
-        doc.p("No stage artifact records its parameters yet.", "warn")
 
     # -- durations
     doc.h(2, "Stage durations", "durations")

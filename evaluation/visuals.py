@@ -17,8 +17,12 @@ def colormap(values: np.ndarray, vmin: float, vmax: float, name: str) -> np.ndar
     return matplotlib.colormaps[name](t)[..., :3].astype(np.float32)
 
 
-def error_rgb(err: np.ndarray, vmax: float = ERROR_VMAX) -> np.ndarray:
-    return colormap(err, 0.0, vmax, "inferno")
+def error_rgb(err: np.ndarray, vmax: float = ERROR_VMAX, valid: np.ndarray | None = None) -> np.ndarray:
+    """|error| 0 … vmax on inferno; pixels the metrics leave out (`valid` False: masked) are grey."""
+    rgb = colormap(err, 0.0, vmax, "inferno")
+    if valid is not None:
+        rgb[~np.asarray(valid, dtype=bool)] = NO_DATA_RGB
+    return rgb
 
 
 def depth_rgb(depth: np.ndarray, vmax: float | None = None) -> np.ndarray:

@@ -9,6 +9,7 @@ into place, so an interrupted export leaves nothing half-written. See docs/expor
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from enum import Enum
 from pathlib import Path
 from typing import Annotated, Optional
@@ -28,6 +29,11 @@ class ExportFormat(str, Enum):
     splat = "splat"
     spz = "spz"
     mesh = "mesh"
+
+
+class GlbAxes(str, Enum):
+    y_up = "y-up"
+    pano_pipe = "pano-pipe"
 
 
 class MeshSource(str, Enum):
@@ -115,7 +121,8 @@ def scene_cameras(run: Path) -> tuple[list[np.ndarray] | None, str | None]:
     return [v.pose_matrix for v in scene.manifest.train_views()], None
 
 
-def build_mesh(g, run: Path, source: str, height: int, depth: int, max_points: int = 300_000):
+def build_mesh(g, run: Path, source: str, height: int, depth: int, max_points: int = 300_000,
+               max_hole_m: float = 4.0):
     """The cleaned, coloured room mesh in the y-down world (see export/mesh.py)."""
     from export.mesh import points_from_centres, points_from_depth, reconstruct
 
@@ -136,7 +143,7 @@ def build_mesh(g, run: Path, source: str, height: int, depth: int, max_points: i
         op.points, op.colors = op.points[idx], op.colors[idx]
         op.viewpoints = None if op.viewpoints is None else op.viewpoints[idx]
     try:
-        mesh = reconstruct(op, depth=depth)
+        mesh = reconstruct(op, depth=depth, max_hole_m=max_hole_m)
     except ValueError as e:
         raise PanoError(run, f"no mesh: {e}") from None
     mesh.stats["source"] = source
@@ -160,6 +167,14 @@ def export_command(
                                              help="mesh: height of the depth renders (width 2×).")] = 128,
     mesh_depth: Annotated[int, typer.Option("--mesh-depth", min=5, max=12,
                                             help="mesh: screened Poisson octree depth.")] = 8,
+    mesh_max_hole: Annotated[float, typer.Option(
+        "--mesh-max-hole", min=0.0,
+        help="mesh: close every hole at most this many metres across (the diagonal of its boundary's box) "
+             "with a flat patch; 0 leaves holes open.")] = 4.0,
+    glb_axes: Annotated[GlbAxes, typer.Option(
+        "--glb-axes", case_sensitive=False,
+        help="mesh: axes of the .glb: y-up (glTF's, so glTF viewers show the room upright) or pano-pipe "
+             "(y down, as the run and the .ply).")] = GlbAxes.y_up,
 ) -> None:
     """Export a run's trained Gaussians (.ply / .splat / .spz) or a coloured mesh of the room."""
     from export.fileio import check_writable
@@ -177,14 +192,21 @@ def export_command(
     if fmt == "mesh":
         from export.mesh import write_mesh
 
-        mesh = build_mesh(g, Path(run), MeshSource(mesh_source).value, mesh_height, mesh_depth)
-        if y_up:
-            mesh.vertices = y_up_points(mesh.vertices)
+        mesh = build_mesh(g, Path(run), MeshSource(mesh_source).value, mesh_height, mesh_depth,
+                          max_hole_m=mesh_max_hole)
+        glb_y_up = GlbAxes(glb_axes) is GlbAxes.y_up
         for t in targets:
-            atomic_write(t, lambda tmp: write_mesh(tmp, mesh))  # tmp keeps t's suffix
+            # glTF is y up by specification: the .glb follows --glb-axes, the .ply --y-up
+            up = glb_y_up if t.suffix.lower() == ".glb" else y_up
+            axes = replace(mesh, vertices=y_up_points(mesh.vertices)) if up else mesh
+            atomic_write(t, lambda tmp, m=axes: write_mesh(tmp, m))  # tmp keeps t's suffix
         s = mesh.stats
+        closed = "watertight" if s.get("watertight") else (
+            f"{s.get('boundary_loops', '?')} hole(s) left open, the largest "
+            f"{(s.get('holes_across_m') or [0])[0]:.2f} m across (--mesh-max-hole)")
         console.print(f"mesh: {s['vertices']} vertices, {s['faces']} faces from {s['points']} points "
-                      f"({s['source']})", soft_wrap=True)
+                      f"({s['source']}; {closed}); .glb {'y up' if glb_y_up else 'y down'}, "
+                      f".ply {'y up' if y_up else 'y down'}", soft_wrap=True)
     else:
         gg = to_y_up(g) if y_up else g
         if fmt == "ply":

@@ -31,7 +31,7 @@ from rich.text import Text
 from rich.markup import escape
 
 from pipeline.console import console, err_console
-from runfs.errors import PanoError
+from runfs.errors import PanoError, did_you_mean
 from runfs.fsutil import LOCK_NAME, run_folder_lock
 from runfs.paths import check_run_folder, default_run_folder, is_run_folder
 from schemas.scene import REAL_CAPTURE_NADIR_DEG
@@ -60,9 +60,30 @@ SetOpt = Annotated[
 ]
 
 
+def _version() -> str:
+    """The installed package's version (pyproject.toml's when run from a checkout)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("pano-pipe")
+    except PackageNotFoundError:
+        import tomllib
+
+        pyproject = Path(__file__).resolve().parents[1] / "pyproject.toml"
+        return tomllib.loads(pyproject.read_text())["project"]["version"]
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        console.print(f"pano-pipe {_version()}")
+        raise typer.Exit()
+
+
 @app.callback()
 def _main(
     debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks.")] = False,
+    version: Annotated[bool, typer.Option(
+        "--version", is_eager=True, callback=_print_version, help="Print the version and exit.")] = False,
     max_megapixels: Annotated[
         Optional[float],
         typer.Option("--max-megapixels", min=0.001, help="Refuse larger images (default 64; env PANO_PIPE_MAX_MEGAPIXELS)."),
@@ -157,6 +178,8 @@ def print_status_table(engine) -> None:
         dur = f"{p.last_duration_s:.2f} s" if p.last_duration_s is not None else "—"
         table.add_row(name, f"[{colours[p.state]}]{p.state}[/]", dur, escape(p.reason))
     console.print(table)
+    for line in engine.hints():
+        console.print(escape(line), soft_wrap=True)
 
 
 # -- commands -----------------------------------------------------------------
@@ -197,8 +220,12 @@ def run(
     engine = make_engine(scene, out, config, set_)
     target = None if stage == "all" else stage
     if target is not None and target not in engine.registry:
-        raise PanoError(None, f"unknown stage {stage!r}; choose 'all' or one of {', '.join(engine.order)}")
+        raise PanoError(None, f"unknown stage {stage!r}{did_you_mean(stage, ['all', *engine.order])}; "
+                              f"choose 'all' or one of {', '.join(engine.order)}")
+    check_run_request(engine, target, until)  # a typo fails before the banner, not after it
     console.print(run_header(engine), soft_wrap=True)
+    for line in engine.hints():
+        console.print(escape(line), soft_wrap=True)
     results = engine.run(target=target, until=until, force=force, resume=resume, force_upstream=force_upstream)
     table = Table(title="run")
     for col in ("stage", "outcome", "seconds", "note"):
@@ -207,6 +234,14 @@ def run(
         table.add_row(r.name, r.outcome, f"{r.duration_s:.2f}" if r.outcome == "ran" else "", escape(r.reason))
     console.print(table)
     print_run_summary(engine, scene, [r.name for r in results if r.outcome in ("ran", "cached")])
+
+
+def check_run_request(engine, target: str | None, until: str | None) -> None:
+    """Every stage name and stage parameter of a run checked up front (PanoError naming the first
+    problem), so nothing is printed or started for a request that cannot run."""
+    engine.select(target, until)
+    for name in engine.order:
+        engine.params_for(name)
 
 
 def run_header(engine) -> str:
@@ -307,17 +342,28 @@ def params(
 
     registry = build_registry()
     if stage is not None and stage not in registry:
-        raise PanoError(None, f"unknown stage {stage!r}; stages are {', '.join(registry)}")
+        raise PanoError(None, f"unknown stage {stage!r}{did_you_mean(stage, registry)}; "
+                              f"stages are {', '.join(registry)}")
     for name, spec in registry.items():
         if stage is not None and name != stage:
             continue
+        rows = [(f"{name}.{field_name}", _type_name(info.annotation),
+                 "(required)" if info.is_required() else repr(info.get_default(call_default_factory=True)),
+                 info.description or "")
+                for field_name, info in spec.params.model_fields.items()]
+        if not console.is_terminal:
+            # a pipe or a file: one tab-separated line per parameter, never wrapped (grep, cut, awk)
+            # (written to the console's file directly: rich would expand the tabs into spaces)
+            print(f"# {name}: {spec.description}", file=console.file)
+            for row in rows:
+                print("\t".join(row), file=console.file)
+            continue
         table = Table(title=f"{name}: {escape(spec.description)}", title_justify="left")
-        for col in ("parameter", "type", "default", "description"):
+        table.add_column("parameter", no_wrap=True)
+        for col in ("type", "default", "description"):
             table.add_column(col, overflow="fold")
-        for field_name, info in spec.params.model_fields.items():
-            default = "(required)" if info.is_required() else repr(info.get_default(call_default_factory=True))
-            table.add_row(f"{name}.{field_name}", escape(_type_name(info.annotation)), escape(default),
-                          escape(info.description or ""))
+        for row in rows:
+            table.add_row(*map(escape, row))
         console.print(table)
 
 
@@ -535,19 +581,23 @@ def user_errors(fn):
 def _register_commands() -> None:
     """Commands that live beside the package they drive."""
     from evaluation.commands import ablate_command, render_command, report_command, sweep_command
+    from depthnet.command import export_depth_model_command
     from layoutnet.command import export_layout_model_command
     from export.command import export_command
+    from models.command import models_app
     from simulate.command import simulate_command
     from viewer.command import view_command
 
     app.command("simulate")(user_errors(simulate_command))
     app.command("export-layout-model")(export_layout_model_command)
+    app.command("export-depth-model")(export_depth_model_command)
     app.command("report")(report_command)
     app.command("ablate")(ablate_command)
     app.command("sweep")(sweep_command)
     app.command("render")(render_command)
     app.command("view")(view_command)
     app.command("export")(export_command)
+    app.add_typer(models_app, name="models")
 
 
 _register_commands()
@@ -612,6 +662,56 @@ def _quiet_warnings() -> None:
     warnings.simplefilter("ignore")
 
 
+def _show_flags_as_flags(command) -> None:
+    """On/off options take no value: help lists them bare (`--y-up`), not as `--y-up <bool>`
+    (typer shows a type for every option; an empty metavar leaves the type column blank)."""
+    def bare(param):
+        if param is not None and getattr(param, "is_flag", False) and param.metavar is None:
+            param.metavar = ""
+        return param
+
+    for param in command.params:
+        if param.param_type_name == "option":
+            bare(param)
+    make_help_option = command.get_help_option  # --help is made on demand, per command
+    command.get_help_option = lambda ctx: bare(make_help_option(ctx))
+    for sub in getattr(command, "commands", {}).values():
+        _show_flags_as_flags(sub)
+
+
+#: Values a user may write after a flag, by habit from other tools (`--y-up true`).
+_FLAG_VALUES = ("true", "false", "yes", "no", "on", "off", "1", "0")
+
+
+def _usage_message(e) -> str:
+    """click's usage error, with what to do next where the bare message leaves a newcomer stuck."""
+    missing = isinstance(e, _click_exceptions("MissingParameter"))
+    message = e.format_message()
+    ctx = getattr(e, "ctx", None)
+    command = ctx.command_path if ctx is not None else "pano-pipe"
+    if missing and ctx is not None and ctx.command.name == "run":
+        from pipeline.registry import build_registry
+        from pipeline.engine import topological_order
+
+        stages = ", ".join(topological_order(build_registry()))
+        return (f"{message} `pano-pipe run` takes a stage and one or more scene folders, e.g. "
+                f"`pano-pipe run all scenes/demo`; the stage is 'all' or one of {stages} "
+                f"(`pano-pipe run --help` lists the options)")
+    if missing:
+        return f"{message} (`{command} --help` shows the usage)"
+    import re
+
+    extra = re.search(r"unexpected extra arguments? ?(?:\(s\))? \((.*)\)", message)
+    extra = extra.group(1) if extra else ""
+    args = sys.argv[1:]
+    at = args.index(extra) if extra.lower() in _FLAG_VALUES and extra in args else -1
+    if at > 0 and args[at - 1].startswith("--"):  # the value follows a flag
+        flag = args[at - 1]
+        return (f"{message}: {flag} is a flag and takes no value: write {flag} to turn it on, "
+                f"leave it out to keep it off")
+    return message
+
+
 def main() -> None:
     """Console entry point. Exit codes: 0 success, 1 internal error, 2 bad input (one line naming
     the file and the problem), 130 interrupted (Ctrl-C or SIGTERM). --debug shows tracebacks."""
@@ -619,7 +719,9 @@ def main() -> None:
     _quiet_warnings()
     signals.install()  # SIGTERM like Ctrl-C, kept across native imports (pycolmap takes it)
     try:
-        code = app(standalone_mode=False)
+        command = typer.main.get_command(app)
+        _show_flags_as_flags(command)
+        code = command(standalone_mode=False)
         if code == 130:  # typer turns Ctrl-C into this return value, silently, when not standalone
             raise KeyboardInterrupt
         # typer returns an Exit's code instead of raising it when standalone_mode is off
@@ -637,7 +739,7 @@ def main() -> None:
         err_console.print(INTERRUPTED)
         sys.exit(130)
     except _click_exceptions("ClickException") as e:  # usage errors: one line, bad input
-        _fail(e.format_message(), 2)
+        _fail(_usage_message(e), 2)
     except OSError as e:  # the environment: a full disk, a read-only folder, no permission
         if _state["debug"]:
             raise

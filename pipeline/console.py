@@ -26,7 +26,10 @@ err_console = Console(stderr=True, highlight=False)
 class PlainProgress:
     """Progress for a pipe or a log file: a plain line per task every `every_s` seconds and at
     its end (description, count, percent, elapsed, ETA and the task's fields), through the
-    same calls as rich's Progress (add_task, update, advance, with-block)."""
+    same calls as rich's Progress (add_task, update, advance, with-block).
+
+    The ETA's rate is measured from the task's first advance on, as rich measures it: the time
+    before it (a kernel compile, a first iteration's warm-up) says nothing about the steps after."""
 
     def __init__(self, every_s: float = 10.0):
         self.every_s = every_s
@@ -47,17 +50,20 @@ class PlainProgress:
         now = time.monotonic()
         self._tasks[task_id] = {"description": description, "total": total, "completed": completed,
                                 "start": completed, "fields": fields, "t0": now, "last": now,
-                                "printed_end": False}
+                                "printed_end": False, "rate_from": None}
         return task_id
 
     def update(self, task_id: int, completed: float | None = None, advance: float | None = None, **fields) -> None:
         t = self._tasks[task_id]
+        before = t["completed"]
         if completed is not None:
             t["completed"] = completed
         if advance is not None:
             t["completed"] += advance
         t["fields"].update(fields)
         now = time.monotonic()
+        if t["rate_from"] is None and t["completed"] != before:
+            t["rate_from"] = (now, t["completed"])  # the first step done: the rate is timed from here
         done = t["total"] is not None and t["completed"] >= t["total"]
         if now - t["last"] >= self.every_s or (done and not t["printed_end"]):
             t["last"] = now
@@ -73,7 +79,11 @@ class PlainProgress:
         parts = [f"{t['description']}: {t['completed']:g}"]
         if t["total"]:
             parts[0] += f"/{t['total']:g} ({100 * t['completed'] / t['total']:.0f}%)"
-            rate = (t["completed"] - t["start"]) / elapsed if elapsed > 0 else 0
+            rate = 0.0
+            if t["rate_from"] is not None:
+                since, at = t["rate_from"]
+                seconds = time.monotonic() - since
+                rate = (t["completed"] - at) / seconds if seconds > 0 else 0.0
             if 0 < rate and t["completed"] < t["total"]:
                 parts.append(f"ETA {(t['total'] - t['completed']) / rate:.0f} s")
         parts.append(f"{elapsed:.0f} s")

@@ -23,7 +23,7 @@ from pydantic import BaseModel, ValidationError
 from rich.markup import escape
 
 from pipeline.console import console, track
-from runfs.errors import PanoError, describe_validation_error
+from runfs.errors import PanoError, describe_validation_error, did_you_mean
 from runfs.fsutil import append_line, atomic_folder, remove_stale_temporaries, run_folder_lock, sha256_file, sha256_json
 from runfs.paths import check_run_folder, mark_run_folder, run_path
 from pipeline.stage import Loaded, StageContext, StageSpec
@@ -160,7 +160,8 @@ def select_stages(registry: dict[str, StageSpec], target: str | None = None, unt
     if stop is None:
         return order
     if stop not in registry:
-        raise PanoError(None, f"unknown stage {stop!r}; stages are {', '.join(order)}")
+        raise PanoError(None, f"unknown stage {stop!r}{did_you_mean(stop, order)}; "
+                              f"stages are {', '.join(order)}")
     wanted = ancestors(registry, stop) | {stop}
     return [n for n in order if n in wanted]
 
@@ -200,7 +201,9 @@ class Engine:
         self.config_source = config_source
         unknown = set(self.config) - set(registry)
         if unknown:
-            raise PanoError(config_source, f"unknown stage(s) {sorted(unknown)}; stages are {self.order}")
+            hints = "".join(did_you_mean(u, self.order) for u in sorted(unknown))
+            raise PanoError(config_source,
+                            f"unknown stage(s) {sorted(unknown)}{hints}; stages are {self.order}")
         self._fingerprints: dict[str, str] = {}
         self._file_hashes: dict[Path, str] = {}
 
@@ -214,7 +217,17 @@ class Engine:
             raise describe_validation_error(f"{self.config_source} [{name}]", e, list(spec.params.model_fields)
                                             ) from None
         files = {k: self._param_file(name, k, v) for k, v in params if isinstance(v, Path)}
-        return params.model_copy(update=files) if files else params
+        params = params.model_copy(update=files) if files else params
+        return spec.resolve_params(self.scene, params) if spec.resolve_params else params
+
+    def hints(self) -> list[str]:
+        """The stages' one-line hints (what the scene lacks and the command that gets it)."""
+        out = []
+        for name in self.order:
+            spec = self.registry[name]
+            if spec.hint and (line := spec.hint(self.scene, self.params_for(name))):
+                out.append(line)
+        return out
 
     def _param_file(self, stage: str, field_name: str, value: Path) -> Path:
         """A file named by a parameter: as given (from the working folder), else relative to the
@@ -350,7 +363,8 @@ class Engine:
         batch executor schedules (pipeline.batch). The caller holds the run folder's lock and has
         prepared the folder (`prepare_run_folder`)."""
         if name not in self.registry:
-            raise PanoError(None, f"unknown stage {name!r}; stages are {', '.join(self.order)}")
+            raise PanoError(None, f"unknown stage {name!r}{did_you_mean(name, self.order)}; "
+                                  f"stages are {', '.join(self.order)}")
         # a retried task (its worker killed mid-stage) finds its predecessor's temporary folder
         remove_stale_temporaries(self.out_dir, stage=name)
         return self._step(name, self.plan(), force, resume)

@@ -38,15 +38,17 @@ def build_registry() -> dict[str, StageSpec]:
         ),
         StageSpec(
             "layout", layout.Params, layout.Output, layout.run, reads_views=layout.selected_views,
-            scene_inputs=("images", "layout"), skip_reason=layout.skip_reason,
+            scene_inputs=("images", "layout"), skip_reason=layout.skip_reason, run_reason=layout.run_reason,
+            resolve_params=layout.resolve_params, hint=layout.hint,
             code=("stages.layout", "layoutnet", "panogeom"),
-            description="room layout per view (HorizonNet-compatible ONNX or supplied boundaries)",
+            description="room layout per view (supplied boundaries, or a HorizonNet model on the aligned panorama)",
         ),
         StageSpec(
             "depth", depth.Params, depth.Output, depth.run, reads_views=train_views,
-            scene_inputs=("images", "depth"), skip_reason=depth.skip_reason,
+            scene_inputs=("images", "depth"), skip_reason=depth.skip_reason, run_reason=depth.run_reason,
+            resolve_params=depth.resolve_params, hint=depth.hint,
             code=("stages.depth", "depthnet", "panogeom"),
-            description="depth per view (ONNX model or supplied files)",
+            description="depth per view (supplied files, or a depth model on cube faces of the panorama)",
         ),
         StageSpec(
             "union", union.Params, union.Output, union.run, reads_views=train_views,

@@ -46,6 +46,12 @@ class StageSpec:
     #: For a stage only some scenes call for: why this one does ("3 views have no pose in
     #: scene.json"); `status` shows it beside the cache state when the stage will run.
     run_reason: Callable[[Scene, BaseModel], str] | None = None
+    #: Fills in what a parameter names (a model name -> its ONNX file in the user's cache, a cached
+    #: model where none is set); runs after validation, before the cache key is made.
+    resolve_params: Callable[[Scene, BaseModel], BaseModel] | None = None
+    #: One line for `status` and the run header when the scene lacks something the user can get
+    #: (the command that gets it); None when nothing is missing.
+    hint: Callable[[Scene, BaseModel], str | None] | None = None
     #: Source the stage depends on (its module plus libraries like splatting/);
     #: their content hash is the stage's code version.
     code: tuple[str, ...] = ()

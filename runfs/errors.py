@@ -16,6 +16,14 @@ class PanoError(Exception):
         super().__init__(f"{self.where}: {problem}" if self.where else problem)
 
 
+def did_you_mean(word: str, choices) -> str:
+    """' (did you mean X?)' naming the closest of `choices` to a misspelt `word`, or ''."""
+    import difflib
+
+    close = difflib.get_close_matches(str(word), [str(c) for c in choices], n=1, cutoff=0.6)
+    return f" (did you mean {close[0]}?)" if close else ""
+
+
 def describe_validation_error(where: str | Path, err, valid_names=None) -> PanoError:
     """Turn a pydantic ValidationError into a one-line PanoError naming the field; an unknown
     field lists `valid_names` (the model's fields) when given."""
@@ -24,7 +32,8 @@ def describe_validation_error(where: str | Path, err, valid_names=None) -> PanoE
     msg = first.get("msg", "invalid")
     msg = msg.removeprefix("Value error, ")
     if first.get("type") == "extra_forbidden" and valid_names:
-        msg = f"unknown parameter; valid ones: {', '.join(valid_names)}"
+        name = str(first.get("loc", ("",))[-1])
+        msg = f"unknown parameter{did_you_mean(name, valid_names)}; valid ones: {', '.join(valid_names)}"
     extra = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
     return PanoError(where, f"{field}: {msg}{extra}" if field else f"{msg}{extra}")
 

@@ -13,6 +13,11 @@ class KindFit(BaseModel):
     """One fit group: all metric views together, or one relative/disparity view (affine_fit per_view)."""
 
     kind: Literal["metric", "relative", "disparity"]
+    depth_model: str = Field(
+        default="",
+        description="The model of depth assumed: metric distance (d = s*v), affine depth (d = s*v + t) or "
+        "affine inverse depth (1/d = s*v + t); s and t below are its fitted parameters.",
+    )
     views: list[str]
     scale: float = Field(
         description="Final scale (layout fit x ICP factor), as in depth = f(scale, shift, value)."

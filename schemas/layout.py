@@ -9,6 +9,20 @@ from pydantic import BaseModel, Field
 Point2 = tuple[float, float]
 
 
+class LayoutAlignment(BaseModel):
+    """How the panorama was turned into its room's Manhattan frame before the model ran."""
+
+    rotation: list[list[float]] = Field(
+        description="3x3, row-major: d_aligned = R d_view (the view's directions in the room's frame).")
+    yaw_deg: float = Field(description="Turn about gravity, degrees.")
+    tilt_deg: float = Field(description="Angle between the camera's down axis and gravity, degrees.")
+    gravity: Literal["pose", "lines", "none"] = Field(
+        description="Where gravity came from: the scene.json pose, vertical line segments, or neither "
+        "(too few lines: the image's vertical was kept).")
+    segments: int = Field(description="Line segments detected.")
+    inliers: int = Field(description="Segments that agree with one of the frame's three axes.")
+
+
 class ViewLayout(BaseModel):
     view: str
     source: Literal["model", "json", "txt", "npy"] = Field(description="Where the boundaries came from.")
@@ -30,6 +44,13 @@ class ViewLayout(BaseModel):
         description="[2,W'] float32 .npy: the boundaries as the source gave them (model: W'=1024; .npy: its "
         "width); None for corner formats (.json/.txt), whose room is exactly the given corners.",
     )
+    alignment: LayoutAlignment | None = Field(
+        default=None,
+        description="Model views with layout.align on: the rotation into the room's frame. The model ran on "
+        "the turned panorama; boundaries, raw_boundaries and confidence are turned back to the view's own "
+        "image, floor_polygon holds the floor corners' (x, z) in the view's own frame (for a tilted camera "
+        "the floor is then only approximately at y = +camera_height there).",
+    )
     method: str = Field(
         default="corners",
         description="How the polygon was made: corners (given), manhattan, cuboid, atlanta, or raw "
@@ -40,6 +61,8 @@ class ViewLayout(BaseModel):
 class LayoutOutput(BaseModel):
     views: list[ViewLayout]
     model: str | None = Field(default=None, description="The ONNX model used, if any.")
+    model_name: str | None = Field(
+        default=None, description="The known model (pano-pipe models list) that file is, if it is one.")
 
     def view(self, name: str) -> ViewLayout:
         return next(v for v in self.views if v.view == name)

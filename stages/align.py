@@ -4,11 +4,13 @@
    metric room (floor y = +h, ceiling y = -d, vertical walls on the floor
    polygon, all in the camera frame) -> layout depth and a wall/floor/ceiling
    label (`layout_depth`, `layout_depth_map`).
-2. One global fit over the views' labelled pixels, robust to furniture and
-   noise: RANSAC on minimal samples, then reweighted least squares on the
-   inliers (relative error below `inlier_threshold`). Metric depth: scale;
-   relative depth: scale and shift; disparity: scale and shift in inverse
-   depth (`fit_scale`).
+2. A robust fit of the depth to the layout depth, robust to furniture and
+   noise: RANSAC on minimal samples, least squares on the inliers (relative
+   error below `inlier_threshold`), then IRLS with Tukey's biweight. The
+   model of depth decides the unknowns and the groups: metric distance, one
+   scale for all views (the paper's global factor); affine depth, scale and
+   shift; affine inverse depth (Depth Anything), scale and shift in inverse
+   depth, 1/d = s*v + t, per view (`fit_scale`).
 3. Refinement against the layout cloud by a scale-only point-to-plane ICP
    (`refine_scale_icp`): the scale acts about each camera centre because the
    poses are fixed; a similarity ICP would move the cameras.
@@ -35,12 +37,14 @@ from runfs.limits import load_npy
 from schemas.scene_loader import valid_mask
 from pipeline.stage import StageContext
 from schemas.align import AlignOutput, KindFit
+from schemas.depth import DEPTH_MODELS
 from schemas.scene import Scene
 
 Output = AlignOutput
 
 Kind = Literal["metric", "relative", "disparity"]
 LABELS = {name: k for k, name in enumerate(SURFACE_NAMES)}
+EQUATIONS = {"metric": "d = s*v", "relative": "d = s*v + t", "disparity": "1/d = s*v + t"}
 
 
 class Params(BaseModel):
@@ -60,10 +64,11 @@ class Params(BaseModel):
         default=["wall", "floor", "ceiling"], min_length=1, description="Layout surfaces the fit uses."
     )
     max_fit_pixels: int = Field(default=200_000, ge=100, description="Random subsample for the robust fit.")
-    ransac_iterations: int = Field(default=256, ge=1)
+    ransac_iterations: int = Field(
+        default=256, ge=1, description="RANSAC hypotheses of the depth-to-layout scale fit.")
     icp: bool = Field(default=True, description="Refine the scale by ICP against the layout cloud.")
     icp_max_distance: float = Field(default=0.1, gt=0, description="ICP correspondence distance (m).")
-    icp_iterations: int = Field(default=30, ge=1)
+    icp_iterations: int = Field(default=30, ge=1, description="ICP iterations at most (icp on).")
     icp_max_points: int = Field(
         default=50_000, ge=100, description="Random subsample of depth points for ICP."
     )
@@ -75,14 +80,17 @@ class Params(BaseModel):
     outlier_neighbors: int = Field(
         default=20, ge=0, description="remove_statistical_outlier nb_neighbors; 0 = off."
     )
-    outlier_std_ratio: float = Field(default=2.0, gt=0)
+    outlier_std_ratio: float = Field(
+        default=2.0, gt=0,
+        description="remove_statistical_outlier std_ratio: drop points whose mean neighbour distance "
+                    "exceeds the average by this many standard deviations.")
     affine_fit: Literal["per_view", "global"] = Field(
         default="per_view",
         description="Relative depth / disparity: a scale and shift per view (models normalise each image) "
         "or one for all views.",
     )
     include_layout_points: bool = Field(default=True, description="Append the sampling stage's layout cloud.")
-    seed: int = Field(default=0, ge=0, le=2**32 - 1)
+    seed: int = Field(default=0, ge=0, le=2**32 - 1, description="Random seed of RANSAC and the subsamples.")
 
 
 def skip_reason(scene: Scene, params: Params) -> str | None:
@@ -205,6 +213,34 @@ def _design(v: np.ndarray, target: np.ndarray, kind: str):
     raise ValueError(f"unknown depth kind {kind!r}")
 
 
+TUKEY_C = 4.685  # Tukey biweight tuning constant: 95 % efficiency under Gaussian noise
+
+
+def _irls_tukey(x, y, w, beta, threshold: float, m: int, iterations: int = 50) -> np.ndarray:
+    """Iteratively reweighted least squares with Tukey's biweight on the relative residuals
+    w*(x@beta - y), from `beta`. The residual scale is 1.4826*MAD of the residuals within
+    `threshold`, re-estimated each iteration; the cut-off c = 4.685*scale never exceeds `threshold`.
+    Pixels beyond c get weight 0 (furniture, clutter), those near 0 weight ~1."""
+    for _ in range(iterations):
+        r = w * (x @ beta - y)
+        near = np.abs(r) < threshold
+        if near.sum() <= 10 * m:
+            break
+        sigma = 1.4826 * float(np.median(np.abs(r[near])))
+        c = min(threshold, max(TUKEY_C * sigma, 1e-6))
+        u = r / c
+        tw = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+        sw = w * np.sqrt(tw)
+        if (tw > 0).sum() <= 10 * m:
+            break
+        new, *_ = np.linalg.lstsq(x * sw[:, None], y * sw, rcond=None)
+        done = np.all(np.abs(new - beta) <= 1e-10 + 1e-8 * np.abs(beta))
+        beta = new
+        if done:
+            break
+    return beta
+
+
 def fit_scale(
     values: np.ndarray,
     layout: np.ndarray,
@@ -221,7 +257,9 @@ def fit_scale(
 
     RANSAC over minimal samples scores hypotheses by the share of pixels whose
     relative depth error is below `inlier_threshold`; the best is refined by
-    weighted least squares on its inliers until the inlier set settles.
+    weighted least squares on its inliers until the inlier set settles, then
+    by IRLS with Tukey's biweight (`_irls_tukey`). Metric: d = s*v; relative:
+    d = s*v + t; disparity: 1/d = s*v + t (scale and shift in inverse depth).
     Raises PanoError when too few pixels exist or agree.
     """
     v = np.asarray(values, dtype=np.float64).reshape(-1)
@@ -275,14 +313,11 @@ def fit_scale(
             break
         inl = inl_new
     share = float(inl.mean()) if n else 0.0
-    # Clean data: tighten to 3 robust sigmas of the inliers' residuals, which drops the clutter
-    # that happens to lie within the user threshold (furniture against a wall); noisy data keeps it.
-    if inl.sum() > 10 * m:
-        r = np.abs(w * (x @ best - y))
-        tight = min(inlier_threshold, max(3 * 1.4826 * float(np.median(r[inl])), 1e-5))
-        sel = r < tight
-        if tight < inlier_threshold and sel.sum() > 10 * m:
-            best, *_ = np.linalg.lstsq(x[sel] * w[sel][:, None], y[sel] * w[sel], rcond=None)
+    # Then Tukey's biweight by IRLS from there: clutter within the user threshold (furniture against
+    # a wall) weighs less the further it lies, and clean pixels are not cut off at a hard edge.
+    best = _irls_tukey(x, y, w, best, inlier_threshold, m)
+    inl = np.abs(w * (x @ best - y)) < inlier_threshold
+    share = float(inl.mean()) if n else 0.0
     scale = float(best[0])
     shift = float(best[1]) if m == 2 else 0.0
     if share < min_inlier_share or not np.isfinite(scale):
@@ -454,6 +489,16 @@ def run(ctx: StageContext[Params]) -> AlignOutput:
     if layout_in is not None and not any(v.layout is not None for v in views):
         ctx.warn("no depth view has a layout: the depth is used as it is (scale 1)")
 
+    # Relative depth without a layout cannot be placed: leave such views out while others remain
+    # (a view the layout stage could not read), refuse below when none would.
+    unplaced = [v for v in views if v.kind != "metric" and v.layout is None]
+    if unplaced and len(unplaced) < len(views):
+        ctx.warn(
+            f"view(s) {', '.join(v.name for v in unplaced)}: {DEPTH_MODELS[unplaced[0].kind]} without a "
+            "layout to fix its scale and shift; left out of the cloud"
+        )
+        views = [v for v in views if v not in unplaced]
+
     # Fit groups: all metric views share one scale (the paper's single global
     # factor); a relative or disparity model normalises each image on its own
     # (Depth Anything), so by default each such view gets its own scale and shift.
@@ -568,6 +613,7 @@ def run(ctx: StageContext[Params]) -> AlignOutput:
         reports.append(
             KindFit(
                 kind=fit.kind,
+                depth_model=f"{DEPTH_MODELS[fit.kind]} ({EQUATIONS[fit.kind]})",
                 views=[v.name for v in groups[key]],
                 scale=scale,
                 shift=shift,

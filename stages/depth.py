@@ -1,18 +1,22 @@
-"""depth: one depth map per train view, from a supplied file or an ONNX model.
+"""depth: one depth map per train view, from a supplied file or a depth model.
 
 Sources, in order of preference (`prefer` swaps the first two):
 1. a supplied file, `scene.depth_path(view)`: depth/<view>.png (uint16
    millimetres, 0 = invalid) or .npy (float metres), distance along the ray,
    any 2:1 size;
-2. an ONNX model (`model`), run under the contract in depthnet/runner.py:
-   a 360° model on the panorama, or a perspective model on six cube faces;
+2. a model (`model`: a known name such as depth-anything-v2-small, a .pth
+   exported on first use, or an .onnx; unset: a known model in the user's
+   cache when a layout will be there to align it), run under the contract in
+   depthnet/runner.py (settings, else the model's metadata): a 360° model on
+   the panorama, or a perspective model on six cube faces;
 3. none: the view gets no depth (a warning); with no file and no model for
    any train view the stage is skipped.
 
 Each view's map is written as depth/<view>.npy, float32 [H,W], NaN where
 invalid: 0, NaN, Inf, negative, or (metric) nearer than `near_limit` / beyond
-`far_limit`. Model outputs keep their kind (metric, relative, disparity);
-`align` fixes the scale. Test views are never read (they are for evaluation).
+`far_limit`. Model outputs keep their kind (metric distance, affine depth,
+affine inverse depth), recorded in the artifact; `align` fits scale (and
+shift). Test views are never read (they are for evaluation).
 """
 
 from __future__ import annotations
@@ -28,7 +32,7 @@ from runfs.errors import PanoError
 from runfs.limits import load_npy, read_image
 from pipeline.stage import StageContext
 from schemas.depth import DepthOutput, ViewDepth
-from schemas.scene import Scene
+from schemas.scene import Scene, View
 
 Output = DepthOutput
 
@@ -36,25 +40,45 @@ Output = DepthOutput
 class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    model: Path | None = Field(
+    model: str | Path | None = Field(
         default=None,
-        description="ONNX depth model; a relative path is tried from the working folder, then the scene.",
+        description="Depth model: a name from `pano-pipe models list` (depth-anything-v2-small; get it with "
+        "`pano-pipe models fetch NAME`), a Depth Anything V2 checkpoint .pth in the official layout "
+        "(exported to ONNX on first use) or an .onnx; a relative path is tried from the working folder, "
+        "then the scene folder. None: a known depth model in the model cache, for train views without "
+        "depth files when the scene will have a layout to align it to; 'none': depth files only.",
     )
-    output: Literal["metric", "relative", "disparity"] = Field(
-        default="metric", description="What the model outputs."
+    output: Literal["metric", "relative", "disparity"] | None = Field(
+        default=None,
+        description="What the model outputs: metric (metres along the ray or axis), relative (depth up to "
+        "scale and shift) or disparity (inverse depth up to scale and shift, Depth Anything). None: what "
+        "the model's metadata records (pano-pipe's exports do), else metric.",
     )
-    normalization: Literal["unit", "imagenet"] = "unit"
+    normalization: Literal["unit", "imagenet"] | None = Field(
+        default=None, description="None: from the model's metadata, else unit ([0,1] RGB)."
+    )
     input_size: tuple[int, int] | None = Field(default=None, description="(H, W) fed to the model.")
-    multiple_of: int = Field(
-        default=1, ge=1, description="Input sides a multiple of this (14: Depth Anything)."
+    multiple_of: int | None = Field(
+        default=None, ge=1, description="Input sides a multiple of this (14: Depth Anything); None: from the "
+        "model's metadata, else 1."
     )
     max_height: int = Field(default=512, ge=8, description="Model input height cap when its size is dynamic.")
-    projection: Literal["equirect", "cubemap"] = Field(
-        default="equirect", description="equirect: 360° model; cubemap: perspective model on six cube faces."
+    projection: Literal["equirect", "cubemap"] | None = Field(
+        default=None,
+        description="equirect: 360° model; cubemap: perspective model on six cube faces. None: from the "
+        "model's metadata, else equirect."
     )
-    face_size: int = Field(default=256, ge=8)
-    face_fov_deg: float = Field(default=100.0, ge=90.0, lt=170.0)
-    perspective_axis: Literal["z", "ray"] = "z"
+    face_size: int | None = Field(
+        default=None, ge=8, description="Cube face side (px) for a model of dynamic size; None: from the "
+        "model's metadata, else 256."
+    )
+    face_fov_deg: float = Field(
+        default=100.0, ge=90.0, lt=170.0,
+        description="cubemap: field of view of a face (degrees); above 90 neighbouring faces overlap and "
+                    "are blended.")
+    perspective_axis: Literal["z", "ray"] = Field(
+        default="z",
+        description="cubemap: the model's depth is along the optical axis (z, most models) or the ray.")
     prefer: Literal["file", "model"] = Field(
         default="file", description="Which source wins when a view has both."
     )
@@ -71,20 +95,47 @@ class Params(BaseModel):
         default=None, description="onnxruntime providers; None: CUDA when available, else CPU."
     )
 
-    def contract(self):
+    def contract_overrides(self) -> dict:
+        """The contract settings given here; the rest come from the model's metadata or the defaults."""
         from depthnet.runner import DepthContract
 
-        return DepthContract(
-            output=self.output,
-            normalization=self.normalization,
-            input_size=self.input_size,
-            multiple_of=self.multiple_of,
-            max_height=self.max_height,
-            projection=self.projection,
-            face_size=self.face_size,
-            face_fov_deg=self.face_fov_deg,
-            perspective_axis=self.perspective_axis,
-        )
+        return {k: v for k in DepthContract.model_fields if (v := getattr(self, k)) is not None}
+
+
+def _get_model_hint() -> str:
+    from models.registry import RECOMMENDED
+
+    return f"get one: pano-pipe models fetch {RECOMMENDED['depth']}"
+
+
+def _views_without_files(scene: Scene) -> list[View]:
+    return [v for v in scene.manifest.train_views() if scene.depth_path(v) is None]
+
+
+def _layout_expected(scene: Scene, views: list[View]) -> bool:
+    """Whether `views` will have a layout to fix an affine depth model's scale and shift: layout
+    files for all of them, or a known layout model in the cache (what the layout stage then uses)."""
+    from models.store import cached_model
+
+    return all(scene.layout_path(v) is not None for v in views) or cached_model("layout") is not None
+
+
+def resolve_params(scene: Scene, params: Params) -> Params:
+    """`model` -> the ONNX file to run (models.resolve_model: a name, a .pth exported once, an .onnx).
+    None picks a known depth model from the user's cache for train views without depth files, when
+    a layout will be there to align its relative depth to (else align could not use it)."""
+    from models.store import cached_model, ensure_onnx, resolve_model
+
+    value = params.model
+    if value is None:
+        missing = _views_without_files(scene)
+        if not missing or not _layout_expected(scene, missing):
+            return params
+        entry = cached_model("depth")
+        return params.model_copy(update={"model": ensure_onnx(entry)}) if entry else params
+    if isinstance(value, str) and value.strip().lower() == "none":
+        return params.model_copy(update={"model": None})
+    return params.model_copy(update={"model": resolve_model(value, "depth", search=(scene.root,))})
 
 
 def skip_reason(scene: Scene, params: Params) -> str | None:
@@ -92,7 +143,34 @@ def skip_reason(scene: Scene, params: Params) -> str | None:
         return None
     if any(scene.depth_path(v) is not None for v in scene.manifest.train_views()):
         return None
-    return "no depth files (depth/<view>.png or .npy) and no depth.model"
+    return f"no depth files (depth/<view>.png or .npy) and no depth model; {_get_model_hint()}"
+
+
+def run_reason(scene: Scene, params: Params) -> str:
+    missing = _views_without_files(scene)
+    if not missing:
+        return "depth files for every train view"
+    if params.model is None:
+        return f"{len(missing)} train view(s) without depth files get no depth ({_get_model_hint()})"
+    return f"model {_model_label(params.model)} for {len(missing)} train view(s) without depth files"
+
+
+def hint(scene: Scene, params: Params) -> str | None:
+    """One line for `status` and the run header when train views have no depth and no model will run."""
+    if params.model is not None:
+        return None
+    missing = _views_without_files(scene)
+    if not missing:
+        return None
+    return (f"depth: {len(missing)} train view(s) have no depth file and no depth model is set or cached; "
+            f"{_get_model_hint()}")
+
+
+def _model_label(path) -> str:
+    from models.store import known_name
+
+    name = known_name(Path(path))
+    return f"{name} ({path})" if name else str(path)
 
 
 # ----------------------------------------------------------------------------- pure helpers
@@ -151,8 +229,8 @@ def mask_invalid(values: np.ndarray, kind: str, near: float = 0.0, far: float = 
 def run(ctx: StageContext[Params]) -> DepthOutput:
     from panogeom.images import read_rgb
 
-    p = ctx.params
     scene = ctx.scene
+    p = resolve_params(scene, ctx.params)  # already resolved when the engine runs it: a no-op
     out = ctx.out_dir / "depth"
     out.mkdir(parents=True, exist_ok=True)
     model = None
@@ -160,7 +238,7 @@ def run(ctx: StageContext[Params]) -> DepthOutput:
         from depthnet.runner import OnnxDepthModel
 
         model = OnnxDepthModel(
-            p.model, p.contract(), threads=p.threads, providers=p.providers
+            p.model, threads=p.threads, providers=p.providers, overrides=p.contract_overrides()
         )
 
     views = scene.manifest.train_views()
@@ -174,7 +252,7 @@ def run(ctx: StageContext[Params]) -> DepthOutput:
         elif model is not None:
             rgb = read_rgb(scene.image_path(view))
             values, info = _run_model(model, rgb, p)
-            kind, source = p.output, "model"
+            kind, source = model.contract.output, "model"
         else:
             ctx.warn(f"view {view.name}: no depth file and no model; it gets no depth")
             continue
@@ -195,7 +273,12 @@ def run(ctx: StageContext[Params]) -> DepthOutput:
         )
     if not results:
         raise PanoError(scene.root, "no train view has depth (no depth files, no depth.model)")
-    return DepthOutput(views=results)
+    return DepthOutput(
+        views=results,
+        model=_model_label(p.model) if model is not None else None,
+        network=model.description.get("architecture") if model is not None else None,
+        contract=model.contract.model_dump(mode="json") if model is not None else None,
+    )
 
 
 def _run_model(model, rgb: np.ndarray, p: Params) -> tuple[np.ndarray, dict]:
@@ -206,7 +289,7 @@ def _run_model(model, rgb: np.ndarray, p: Params) -> tuple[np.ndarray, dict]:
     oh = p.output_height or min(rgb.shape[0], 512)
     hw = (oh, 2 * oh)
     info = {"model_input": model.input_hw(rgb.shape[:2])}
-    if p.projection == "cubemap":
+    if model.contract.projection == "cubemap":
         values, faces = run_cubemap(model, rgb, hw)
         return values, {**info, **faces}
     return run_equirect(model, rgb, hw), info

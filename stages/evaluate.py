@@ -47,10 +47,13 @@ class Params(BaseModel):
         "'image' = each test image's own size, or an explicit [H, W].",
     )
     backend: str | None = Field(default=None, description="Splatting backend (None: the renderer's default).")
-    device: Literal["auto", "cpu", "cuda"] = "auto"
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        default="auto",
+        description="Where the test views are rendered: auto = CUDA when available, else the CPU.")
     threads: int | None = Field(default=None, ge=1, description="torch threads while rendering (None: unchanged).")
     lpips: bool = Field(default=True, description="Compute LPIPS when weights are found.")
-    lpips_net: Literal["alex", "vgg"] = "alex"
+    lpips_net: Literal["alex", "vgg"] = Field(
+        default="alex", description="LPIPS backbone: alex (the 3DGS papers' choice) or vgg.")
     lpips_weights: str | None = Field(
         default=None,
         description="Folder or .pth with LPIPS weights; default $PANO_PIPE_LPIPS_WEIGHTS, then the standard places "
@@ -260,7 +263,7 @@ def run(ctx: StageContext) -> EvaluateOutput:
             names = {k: f"{k}/{v.name}.png" for k in ("gt", "renders", "errors", "depth")}
             write_rgb(out / names["gt"], gt)
             write_rgb(out / names["renders"], r.image)
-            write_rgb(out / names["errors"], error_rgb(M.error_map(r.image, gt)))
+            write_rgb(out / names["errors"], error_rgb(M.error_map(r.image, gt), valid=mask))  # masked: grey
             write_rgb(out / names["depth"], depth_rgb(r.depth))
             np.save(out / "depth" / f"{v.name}.npy", r.depth.astype(np.float32))
             rows.append(row)

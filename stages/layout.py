@@ -4,7 +4,9 @@ HorizonNet-compatible ONNX model (docs/layout.md).
 Per view (train and test views alike; `union` uses the train ones):
 1. a supplied file, `scene.layout_path(view)` — HorizonNet JSON, corner .txt
    or [2,W] .npy latitudes — wins over the model;
-2. else the ONNX model (`model`), on the image resized to 512x1024;
+2. else the layout model (`model`: a known name, a .pth or an .onnx; by default a known layout
+   model in the user's model cache), on the image resized to 512x1024 and turned into its room's
+   Manhattan frame (`align`, layoutnet.alignment); the room is turned back into the view's frame;
 3. else the view is left out (with a warning for a train view).
 The camera height comes from scene.json, else 1.6 m (HorizonNet's
 convention) with a warning. Writes `<view>.boundaries.npy` (the fitted room's
@@ -14,6 +16,7 @@ model/.npy sources, `<view>.raw_boundaries.npy` (the source's own boundaries).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -22,11 +25,12 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from layoutnet import postprocess as pp
+from layoutnet.alignment import Alignment
 from layoutnet.formats import SuppliedLayout, read_layout
 from runfs.errors import PanoError
 from runfs.limits import read_image
 from pipeline.stage import StageContext
-from schemas.layout import LayoutOutput, ViewLayout
+from schemas.layout import LayoutAlignment, LayoutOutput, ViewLayout
 from schemas.scene import Scene, View
 
 Output = LayoutOutput
@@ -35,11 +39,21 @@ Output = LayoutOutput
 class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    model: Path | None = Field(
+    model: str | Path | None = Field(
         default=None,
-        description="HorizonNet-compatible ONNX model (pano-pipe export-layout-model makes one); a relative "
-        "path is tried from the working folder, then the scene folder. None: supplied layout files only.",
+        description="Layout model: a name from `pano-pipe models list` (get it with `pano-pipe models fetch "
+        "NAME`), a HorizonNet checkpoint .pth (exported to ONNX on first use) or a HorizonNet-compatible "
+        ".onnx; a relative path is tried from the working folder, then the scene folder. None: a known "
+        "layout model in the model cache, for views without layout files; 'none': layout files only.",
     )
+    align: Literal["auto", "lines", "off"] = Field(
+        default="auto",
+        description="Turn each panorama into its room's Manhattan frame before the model (HorizonNet is "
+        "trained on such panoramas) and the room back: auto (gravity from the scene.json pose where given, "
+        "the yaw from line segments), lines (gravity too from line segments), off (panoramas are aligned).",
+    )
+    max_tilt_deg: float = Field(
+        default=30.0, gt=0, le=60, description="Largest camera tilt the alignment looks for (degrees).")
     providers: list[str] | None = Field(
         default=None, description="onnxruntime providers; None: CUDA when available, else CPU."
     )
@@ -68,12 +82,66 @@ def _has_source(scene: Scene, view: View) -> bool:
     return scene.layout_path(view) is not None
 
 
+def _get_model_hint() -> str:
+    from models.registry import RECOMMENDED
+
+    return f"get one: pano-pipe models fetch {RECOMMENDED['layout']}"
+
+
+def _views_without_files(scene: Scene, params: Params) -> list[View]:
+    return [v for v in selected_views(scene, params) if not _has_source(scene, v)]
+
+
+def resolve_params(scene: Scene, params: Params) -> Params:
+    """`model` → the ONNX file to run (models.resolve_model); None picks a known layout model from
+    the user's cache when some view has no layout file (none there: stays None)."""
+    from models.store import cached_model, ensure_onnx, resolve_model
+
+    value = params.model
+    if value is None:
+        if not _views_without_files(scene, params):
+            return params
+        entry = cached_model("layout")
+        return params.model_copy(update={"model": ensure_onnx(entry)}) if entry else params
+    if isinstance(value, str) and value.strip().lower() == "none":
+        return params.model_copy(update={"model": None})
+    return params.model_copy(update={"model": resolve_model(value, "layout", search=(scene.root,))})
+
+
 def skip_reason(scene: Scene, params: Params) -> str | None:
     if params.model is not None:
         return None
     if any(_has_source(scene, v) for v in selected_views(scene, params)):
         return None
-    return "no layout source: no layout/ files and no `layout.model` configured"
+    return f"no layout source: no layout files and no layout model; {_get_model_hint()}"
+
+
+def run_reason(scene: Scene, params: Params) -> str:
+    missing = _views_without_files(scene, params)
+    if not missing:
+        return "layout files for every view"
+    if params.model is None:
+        return f"{len(missing)} view(s) without layout files are left out ({_get_model_hint()})"
+    return f"model {_model_label(params.model)} for {len(missing)} view(s) without layout files"
+
+
+def hint(scene: Scene, params: Params) -> str | None:
+    """One line for `status` and the run header: the command that gets a layout model, when a
+    train view has neither a layout file nor a model."""
+    if params.model is not None:
+        return None
+    missing = [v for v in _views_without_files(scene, params) if v.split == "train"]
+    if not missing:
+        return None
+    return (f"layout: {len(missing)} train view(s) have no layout file and no layout model is set or "
+            f"cached; {_get_model_hint()}")
+
+
+def _model_label(path: Path) -> str:
+    from models.store import known_name
+
+    name = known_name(Path(path))
+    return f"{name} ({path})" if name else str(path)
 
 
 def selected_views(scene: Scene, params: Params) -> list[View]:
@@ -114,7 +182,8 @@ def room_from_supplied(
 def room_from_model(
     model, rgb: np.ndarray, camera_height: float, params: Params
 ) -> tuple[pp.RoomLayout, np.ndarray]:
-    """Run the ONNX model on an RGB panorama ([H,W,3] in [0,1], any 2:1 size) and post-process."""
+    """Run the ONNX model on an RGB panorama ([H,W,3] in [0,1], any 2:1 size) and post-process
+    (no alignment: the panorama is taken as it is)."""
     x = cv2.resize(rgb, (1024, 512), interpolation=cv2.INTER_AREA if rgb.shape[0] > 512 else cv2.INTER_LINEAR)
     bounds, cor = model.predict(x, tta=params.tta)
     room = pp.layout_from_boundaries(
@@ -129,17 +198,65 @@ def room_from_model(
     return room, bounds
 
 
+@dataclass
+class ModelLayout:
+    """A model's room in the view's own frame (see `layout_from_model`)."""
+
+    room: pp.RoomLayout
+    boundaries: np.ndarray  # [2,width] the fitted room in the view's image
+    raw: np.ndarray  # [2,1024] the model's own boundaries, in the view's image
+    confidence: np.ndarray  # [width]
+    alignment: Alignment | None
+
+
+def layout_from_model(model, rgb: np.ndarray, camera_height: float, params: Params, width: int,
+                      down: np.ndarray | None = None) -> ModelLayout:
+    """The model on the panorama turned into its room's frame (params.align), the room turned back
+    into the view's frame (layoutnet.alignment.room_in_view). `down`: gravity in the view's frame
+    when the pose gives it (align=auto)."""
+    from layoutnet.alignment import MIN_APPLIED_DEG, estimate_alignment, room_in_view
+    from panogeom.rotate import rotate_equirect
+
+    small = cv2.resize(rgb, (1024, 512), interpolation=cv2.INTER_AREA if rgb.shape[0] > 512 else cv2.INTER_LINEAR)
+    alignment = None
+    if params.align != "off":
+        alignment = estimate_alignment(small, down=down if params.align == "auto" else None,
+                                       max_tilt_deg=params.max_tilt_deg)
+        if alignment.angle_deg < MIN_APPLIED_DEG:
+            alignment.rotation = np.eye(3)
+    if alignment is None or alignment.angle_deg == 0.0:
+        room, raw = room_from_model(model, small, camera_height, params)
+        fitted = pp.polygon_to_boundaries(room.polygon, room.camera_height, room.ceiling_distance, width)
+        conf = pp.column_confidence(raw, pp.polygon_to_boundaries(
+            room.polygon, room.camera_height, room.ceiling_distance, raw.shape[1]))
+        conf = pp.resample_boundaries(conf[None].astype(np.float64), width)[0]
+        room.notes += alignment.notes if alignment else []
+        return ModelLayout(room, fitted, raw, conf, alignment)
+    room, raw = room_from_model(model, rotate_equirect(small, alignment.rotation), camera_height, params)
+    view_room, fitted, raw_view, conf = room_in_view(room, raw, alignment.rotation, width)
+    view_room.notes += alignment.notes
+    return ModelLayout(view_room, fitted, raw_view, conf, alignment)
+
+
+def _alignment_record(a: Alignment | None) -> LayoutAlignment | None:
+    if a is None:
+        return None
+    return LayoutAlignment(rotation=[[float(x) for x in row] for row in a.rotation], yaw_deg=a.yaw_deg,
+                           tilt_deg=a.tilt_deg, gravity=a.gravity, segments=a.segments, inliers=a.inliers)
+
+
 # ----------------------------------------------------------------------------- the stage
 def run(ctx: StageContext[Params]) -> LayoutOutput:
     from panogeom.images import read_rgb
 
-    scene, params = ctx.scene, ctx.params
+    scene = ctx.scene
+    params = resolve_params(scene, ctx.params)  # already resolved when the engine runs it: a no-op
     model = None
     model_path = None
     if params.model is not None:
         from layoutnet.inference import LayoutModel
 
-        model_path = params.model  # the engine resolved it (pipeline.engine.Engine.params_for)
+        model_path = Path(params.model)
         model = LayoutModel(model_path, providers=params.providers, threads=params.threads)
 
     views = selected_views(scene, params)
@@ -157,6 +274,7 @@ def run(ctx: StageContext[Params]) -> LayoutOutput:
             assumed.append(view.name)
         img_path = scene.image_path(view)
         height, width = _image_size(img_path)
+        alignment = None
         if src is not None:
             sup = read_layout(src, width, height)
             try:
@@ -164,21 +282,24 @@ def run(ctx: StageContext[Params]) -> LayoutOutput:
             except ValueError as e:
                 raise PanoError(src, str(e)) from None
             source = sup.kind
+            fitted = pp.polygon_to_boundaries(room.polygon, room.camera_height, room.ceiling_distance, width)
+            if raw is not None:
+                conf = pp.column_confidence(raw, fitted)
+                conf = pp.resample_boundaries(conf[None].astype(np.float64), width)[0]
+            else:
+                conf = np.ones(width)
         else:
+            down = np.asarray(view.pose, dtype=np.float64)[1, :3] if view.pose is not None else None
             try:
-                room, raw = room_from_model(model, read_rgb(img_path), h, params)
+                got = layout_from_model(model, read_rgb(img_path), h, params, width, down=down)
             except ValueError as e:  # e.g. NaN outputs
                 raise PanoError(model_path, f"view {view.name}: unusable output: {e}") from None
+            room, raw, fitted, conf, alignment = got.room, got.raw, got.boundaries, got.confidence, got.alignment
             source = "model"
+        conf = np.asarray(conf, dtype=np.float32)
         for note in room.notes:
             ctx.warn(f"view {view.name}: {note}")
 
-        fitted = pp.polygon_to_boundaries(room.polygon, room.camera_height, room.ceiling_distance, width)
-        if raw is not None:
-            conf = pp.column_confidence(raw, fitted)
-            conf = pp.resample_boundaries(conf[None].astype(np.float64), width)[0].astype(np.float32)
-        else:
-            conf = np.ones(width, dtype=np.float32)
         np.save(ctx.out_dir / f"{view.name}.boundaries.npy", fitted.astype(np.float32))
         np.save(ctx.out_dir / f"{view.name}.confidence.npy", conf)
         raw_rel = None
@@ -198,6 +319,7 @@ def run(ctx: StageContext[Params]) -> LayoutOutput:
                 split=view.split,
                 raw_boundaries=raw_rel,
                 method=room.method,
+                alignment=_alignment_record(alignment),
             )
         )
     if assumed:
@@ -209,4 +331,7 @@ def run(ctx: StageContext[Params]) -> LayoutOutput:
         raise PanoError(
             scene.root, "no view got a layout (no layout files for the selected views and no model)"
         )
-    return LayoutOutput(views=out, model=str(model_path) if model_path else None)
+    from models.store import known_name
+
+    return LayoutOutput(views=out, model=str(model_path) if model_path else None,
+                        model_name=known_name(model_path) if model_path else None)

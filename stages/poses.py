@@ -55,7 +55,8 @@ class Params(BaseModel):
         default=1.6, gt=0, le=100, description="Camera height (m) for views without camera_height in scene.json: "
                                                "it sets the metric scale when no view has a pose.")
     threads: int | None = Field(default=None, ge=1, description="CPU threads for COLMAP (default: all).")
-    seed: int = Field(default=0, ge=0, le=2**31 - 1)
+    seed: int = Field(default=0, ge=0, le=2**31 - 1,
+                      description="Random seed of COLMAP (RANSAC, mapping) and of the floor fit.")
 
 
 def skip_reason(scene: Scene, params: Params) -> str | None:

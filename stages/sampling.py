@@ -49,7 +49,8 @@ class Params(BaseModel):
     surfaces: list[Literal["wall", "floor", "ceiling"]] = Field(
         default=["wall", "floor", "ceiling"], min_length=1, description="Which surfaces to sample."
     )
-    seed: int = Field(default=0, ge=0, le=2**32 - 1)
+    seed: int = Field(
+        default=0, ge=0, le=2**32 - 1, description="Random seed of the jitter (same seed, same cloud).")
     visibility_eps: float = Field(
         default=1e-3,
         gt=0,
@@ -61,7 +62,8 @@ class Params(BaseModel):
         description="A view's own floor polygon is grown by this (m) when deciding what it sees (layout noise).",
     )
     export_mesh: bool = Field(
-        default=True, description="Write room.glb (the extruded floor plan) for viewing."
+        default=True,
+        description="Write room.glb (the extruded floor plan, y up as glTF defines) for viewing."
     )
     max_points: int = Field(default=5_000_000, gt=0, description="Refuse to write more points than this.")
 
@@ -427,6 +429,8 @@ def run(ctx: StageContext) -> SamplingOutput:
     if params.export_mesh:
         mesh = room_mesh(rooms)
         if mesh is not None:
+            # glTF is y up by specification: rotated 180° about x (a rotation: the winding stays)
+            mesh.apply_transform(np.diag([1.0, -1.0, -1.0, 1.0]))
             mesh.export(ctx.out_dir / "room.glb", file_type="glb")
             mesh_rel = "room.glb"
     counts = {name: int((s.surface == k).sum()) for k, name in enumerate(SURFACE_NAMES)}

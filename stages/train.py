@@ -58,7 +58,9 @@ class Params(BaseModel):
 
     preset: Literal["fast", "paper", "quality"] = Field(
         default="fast", description="Fills every setting left unset: fast (CPU), paper (512x1024, 7k), quality (30k).")
-    iterations: int | None = Field(default=None, ge=1)
+    iterations: int | None = Field(
+        default=None, ge=1,
+        description="Optimisation steps, one training panorama each (None: the preset's).")
     height: int | None = Field(default=None, ge=8, description="Training panorama height; width = 2 x height.")
     init: Literal["auto", "random", "layout", "depth", "layout+depth"] = Field(
         default="auto",
@@ -73,30 +75,51 @@ class Params(BaseModel):
         default=(2, 4, 2), description="Crops per elevation ring, yaws evenly spread from 0 (paper: 8 in all).")
     crop_size: int | None = Field(
         default=None, ge=8, description="Crop side in pixels (None = the training height: 512 at 512x1024).")
-    layout_reg: bool = Field(default=True, description="L_layout on/off (ablation).")
-    lambda_l1: float = Field(default=0.8, ge=0)
-    lambda_dssim: float = Field(default=0.2, ge=0)
+    layout_reg: bool = Field(
+        default=True, description="L_layout on/off (ablation); needs the layout cloud of the sampling stage.")
+    lambda_l1: float = Field(default=0.8, ge=0, description="λ1: weight of the L1 photometric loss.")
+    lambda_dssim: float = Field(
+        default=0.2, ge=0, description="λ2: weight of the D-SSIM loss (1 - SSIM) / 2.")
     lambda_layout: float | None = Field(
-        default=None, ge=0, description="λ3; default 0.1 for <= 8 training views, 0.01 above (paper).")
-    lr_position_init: float = Field(default=1.6e-4, gt=0, description="× scene extent.")
-    lr_position_final: float = Field(default=1.6e-6, gt=0, description="× scene extent.")
-    lr_sh_dc: float = Field(default=2.5e-3, ge=0)
-    lr_sh_rest: float = Field(default=2.5e-3 / 20, ge=0)
-    lr_opacity: float = Field(default=0.05, ge=0)
-    lr_scaling: float = Field(default=5e-3, ge=0)
-    lr_rotation: float = Field(default=1e-3, ge=0)
+        default=None, ge=0,
+        description="λ3, weight of L_layout; default 0.1 for <= 8 training views, 0.01 above (paper).")
+    lr_position_init: float = Field(
+        default=1.6e-4, gt=0,
+        description="Adam learning rate of the Gaussian centres at iteration 1, × extent (m).")
+    lr_position_final: float = Field(
+        default=1.6e-6, gt=0,
+        description="The centres' learning rate at the last iteration, × extent (exponential decay in "
+                    "between).")
+    lr_sh_dc: float = Field(
+        default=2.5e-3, ge=0, description="Adam learning rate of the base colour (SH band 0).")
+    lr_sh_rest: float = Field(
+        default=2.5e-3 / 20, ge=0,
+        description="Adam learning rate of the view-dependent colour (SH bands 1-3).")
+    lr_opacity: float = Field(default=0.05, ge=0, description="Adam learning rate of the opacity logits.")
+    lr_scaling: float = Field(
+        default=5e-3, ge=0, description="Adam learning rate of the log scales (log metres).")
+    lr_rotation: float = Field(
+        default=1e-3, ge=0, description="Adam learning rate of the rotation quaternions.")
     extent: float | None = Field(
         default=None, gt=0, description="Scene size (m); default half the diagonal of the initial points' box.")
-    sh_degree: int = Field(default=3, ge=0, le=3)
-    sh_degree_every: int = Field(default=1000, ge=1)
-    densify_from: int | None = Field(default=None, ge=0)
-    densify_until: int | None = Field(default=None, ge=0)
-    densify_every: int = Field(default=100, ge=1)
+    sh_degree: int = Field(
+        default=3, ge=0, le=3, description="Highest spherical-harmonics degree of the colours.")
+    sh_degree_every: int = Field(
+        default=1000, ge=1, description="Iterations between turning on one more SH degree (up to sh_degree).")
+    densify_from: int | None = Field(
+        default=None, ge=0,
+        description="First iteration that clones, splits and prunes (None: the preset's).")
+    densify_until: int | None = Field(
+        default=None, ge=0, description="Last iteration that densifies (None: the preset's).")
+    densify_every: int = Field(default=100, ge=1, description="Iterations between densification steps.")
     densify_grad_threshold: float = Field(
         default=2e-4, gt=0, description="On the angular view-space gradient (resolution independent).")
-    percent_dense: float = Field(default=0.01, gt=0)
-    min_opacity: float = Field(default=0.005, ge=0, lt=1)
-    opacity_reset_every: int | None = Field(default=None, ge=0, description="0 = never.")
+    percent_dense: float = Field(
+        default=0.01, gt=0, description="Gaussians larger than this × extent are split, smaller ones cloned.")
+    min_opacity: float = Field(
+        default=0.005, ge=0, lt=1, description="Densification prunes Gaussians less opaque than this.")
+    opacity_reset_every: int | None = Field(
+        default=None, ge=0, description="Iterations between opacity resets (0 = never; None: the preset's).")
     max_world_scale: float | None = Field(
         default=0.1, gt=0, description="Prune scale > this × extent after the first opacity reset (None = off).")
     max_screen_radius: float | None = Field(
@@ -105,16 +128,19 @@ class Params(BaseModel):
     random_points: int | None = Field(default=None, ge=1, description="Gaussians of the random init.")
     max_init_points: int | None = Field(
         default=None, ge=0, description="Random subset of a larger init cloud (0 = keep all).")
-    init_opacity: float = Field(default=0.1, gt=0, lt=1)
+    init_opacity: float = Field(default=0.1, gt=0, lt=1, description="Opacity of every initial Gaussian.")
     layout_flatten: float = Field(default=0.1, gt=0, le=1, description="Thickness / width of layout Gaussians.")
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    seed: int = Field(default=0, ge=0, le=2**32 - 1)
+    background: tuple[float, float, float] = Field(
+        default=(0.0, 0.0, 0.0), description="RGB in [0, 1] behind the Gaussians while training.")
+    seed: int = Field(
+        default=0, ge=0, le=2**32 - 1,
+        description="Random seed of the view order, random init and densification.")
     backend: Literal["cpp", "cuda", "torch"] | None = Field(
         default=None, description="splatting backend; None = its default for the device (cpp on CPU, cuda on CUDA).")
     device: Literal["auto", "cpu", "cuda"] = Field(
         default="auto", description="Where training runs: auto = CUDA when available, else the CPU.")
     threads: int | None = Field(default=None, ge=1, description="torch threads (None = leave as is).")
-    log_every: int = Field(default=10, ge=1)
+    log_every: int = Field(default=10, ge=1, description="Iterations between records in train_log.jsonl.")
     checkpoint_every: int = Field(default=500, ge=0, description="0 = only on Ctrl-C.")
     appearance: bool = Field(default=False, description="A learned colour gain and bias per training panorama "
                                                        "(exposure, white balance), applied while training only.")

@@ -45,7 +45,8 @@ class Params(BaseModel):
     max_tilt_deg: float = Field(
         default=5.0, gt=0, description="Warn when a camera's up axis is tilted more than this from world -y."
     )
-    drawing_dpi: int = Field(default=120, ge=30, le=600)
+    drawing_dpi: int = Field(
+        default=120, ge=30, le=600, description="Resolution of floor_plan.png (dots per inch).")
 
 
 def skip_reason(scene: Scene, params: Params) -> str | None:

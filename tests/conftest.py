@@ -9,6 +9,11 @@ from pathlib import Path
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads; see pipeline/cli.py
 # Tests never download LPIPS weights (CI is offline); subprocesses inherit this.
 os.environ["PANO_PIPE_OFFLINE"] = "1"
+# Tests never see the user's model cache: a cached layout model changes what the layout stage does.
+# Tests that fetch models point PANO_PIPE_MODELS_DIR at their own folder.
+os.environ["PANO_PIPE_MODELS_DIR"] = os.path.join(
+    __import__("tempfile").mkdtemp(prefix="pano-pipe-test-models-"), "models")
+os.environ.pop("PANO_PIPE_MODELS_REGISTRY", None)
 # Without CUDA, the `cuda` splatting backend's Triton kernels run in the Triton interpreter.
 # Triton reads this when it is first imported (its library functions are decorated then),
 # so it is set here, before any test module can import triton (splatting/raster_triton.py).

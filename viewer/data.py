@@ -182,3 +182,26 @@ def level_pose(c2w: np.ndarray) -> np.ndarray:
     out = np.eye(4)
     out[:3, 0], out[:3, 1], out[:3, 2], out[:3, 3] = x, y, z, c2w[:3, 3]
     return out
+
+
+def look_along_room(position: np.ndarray, centers: np.ndarray, bins: int = 36, band_m: float = 0.5,
+                    min_points: int = 20) -> np.ndarray:
+    """The level direction (unit, y = 0) from `position` along which the room runs farthest: the
+    splat centres within `band_m` of the camera's height, binned by azimuth around it, and the
+    bin with the largest median distance (a median, so a few floaters beyond a wall do not count).
+    Falls back to +z when too few centres lie in that band."""
+    p = np.asarray(position, dtype=np.float64)
+    c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+    near = c[np.abs(c[:, 1] - p[1]) < band_m] - p
+    if len(near) < min_points:
+        return np.array([0.0, 0.0, 1.0])
+    azimuth = np.arctan2(near[:, 0], near[:, 2])
+    dist = np.hypot(near[:, 0], near[:, 2])
+    idx = np.minimum(((azimuth + np.pi) / (2 * np.pi) * bins).astype(int), bins - 1)
+    medians = np.full(bins, -1.0)
+    for b in range(bins):
+        d = dist[idx == b]
+        if len(d) >= 3:
+            medians[b] = float(np.median(d))
+    best = (int(np.argmax(medians)) + 0.5) / bins * 2 * np.pi - np.pi
+    return np.array([np.sin(best), 0.0, np.cos(best)])

@@ -24,6 +24,7 @@ from viewer.data import (
     floor_plan_segments,
     layout_cloud,
     level_pose,
+    look_along_room,
     scene_cameras,
     splats_from_model,
 )
@@ -265,12 +266,13 @@ def start_viewer(target: Target, host: str = "127.0.0.1", port: int = 8080, pano
     h = ViewerHandle(server=server, run_dir=run_dir, url=f"http://{_url_host(host)}:{server.get_port()}",
                      model=model, device=device, cameras=cameras)
 
-    # initial viewpoint: the first training camera (inside the room), else above the splats' centre
+    # initial viewpoint: the first training camera (inside the room), looking level along the room's
+    # longest free direction (its own forward axis may face a wall a hand's breadth away)
     train = [c for c in cameras if c.split == "train"] or cameras
     if train:
-        c2w = train[0].c2w
-        server.initial_camera.position = tuple(c2w[:3, 3])
-        server.initial_camera.look_at = tuple(c2w[:3, 3] + c2w[:3, 2])
+        position = train[0].c2w[:3, 3]
+        server.initial_camera.position = tuple(position)
+        server.initial_camera.look_at = tuple(position + look_along_room(position, splats.centers))
     elif len(splats):
         centre = np.median(splats.centers, axis=0)
         server.initial_camera.position = tuple(centre + np.array([0.0, -3.0, -3.0]))
@@ -321,9 +323,19 @@ def start_viewer(target: Target, host: str = "127.0.0.1", port: int = 8080, pano
                                               step=PANO_HEIGHT_STEP, initial_value=clamp_pano_height(pano_height))
         h.render_button = server.gui.add_button("Render 360° panorama here")
         status = server.gui.add_markdown("Renders the current viewpoint (levelled) and saves it to "
-                                         f"`{run_dir.name}/{VIEW_FOLDER}/`.")
+                                         f"`{shown_path(run_dir / VIEW_FOLDER)}/`.")
         h.render_button.on_click(_renderer(h, status))
     return h
+
+
+def shown_path(path: Path) -> str:
+    """A path as the user can open it: relative to the working folder when inside it
+    (runs/demo/view), else absolute."""
+    path = Path(path).absolute()
+    try:
+        return path.relative_to(Path.cwd()).as_posix()
+    except ValueError:
+        return path.as_posix()
 
 
 def _url_host(host: str) -> str:
@@ -355,7 +367,7 @@ def _renderer(h: ViewerHandle, status):
         status.content = "Rendering…"
         try:
             pano = h.render_panorama(c2w, height)
-            status.content = (f"Saved `{h.run_dir.name}/{VIEW_FOLDER}/{pano.path.name}` "
+            status.content = (f"Saved `{shown_path(pano.path)}` "
                               f"({pano.image.shape[1]}×{pano.image.shape[0]}, {pano.seconds:.2f} s).")
         except Exception as exc:  # a failed render must not kill the server
             status.content = f"Render failed: {type(exc).__name__}: {exc}"

@@ -103,6 +103,30 @@ def test_disparity_stage_with_layout(kit, empty_room, tmp_path):
     assert np.mean(sim.surface_distance(cloud["points"][~cloud["is_layout"]]) < 0.02) >= 0.95
 
 
+def test_affine_view_without_a_layout_is_left_out_with_a_warning(kit, empty_room, tmp_path):
+    """A view the layout stage could not read: its affine inverse depth cannot be placed, the others can."""
+    sim = empty_room
+    maps = {n: 1.7 / d + 0.3 for n, d in _scaled_depth(sim, 1.0).items()}
+    depth = kit.depth_loaded(tmp_path / "depth", maps, kind="disparity")
+    layout = kit.layout_from_gt(sim, tmp_path / "layout")
+    kept, dropped = layout.data.views[0].view, [lv.view for lv in layout.data.views[1:]]
+    assert dropped  # the room has several train views
+    layout.data.views = layout.data.views[:1]
+    sampling = kit.sampling_from_gt(sim, tmp_path / "sampling", spacing=0.05)
+    from pipeline.stage import StageContext
+    from stages import align
+
+    folder = tmp_path / "align-out"
+    folder.mkdir()
+    ctx = StageContext(scene=sim.scene, params=align.Params(),
+                       inputs={"depth": depth, "layout": layout, "sampling": sampling}, out_dir=folder)
+    out = align.run(ctx)
+    assert [f.views for f in out.fits] == [[kept]] and abs(out.scale * 1.7 - 1) < 0.01
+    assert any(all(name in w for name in dropped) and "left out" in w for w in ctx.warnings)
+    cloud = read_cloud(folder / out.cloud.npz)
+    assert np.mean(sim.surface_distance(cloud["points"][~cloud["is_layout"]]) < 0.02) >= 0.95
+
+
 def test_garbage_depth_is_refused_with_one_line(kit, empty_room, tmp_path):
     rng = np.random.default_rng(0)
     maps = {v.name: rng.uniform(0.5, 9.0, (H, 2 * H)) for v in empty_room.train()}

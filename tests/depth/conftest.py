@@ -120,7 +120,9 @@ def export(module: torch.nn.Module, path: Path, shape, dynamic: bool = False) ->
     return path
 
 
-def make_encoded_scene(root: Path, preset="cuboid", views=2, height=64, seed=0, with_depth=False):
+def make_encoded_scene(
+    root: Path, preset="cuboid", views=2, height=64, seed=0, with_depth=False, with_layout=False
+):
     """A simulator scene (empty room) whose train images encode the exact depth."""
     res = generate_scene(
         root,
@@ -132,6 +134,7 @@ def make_encoded_scene(root: Path, preset="cuboid", views=2, height=64, seed=0, 
         effects="texture",
         aa_samples=1,
         with_depth=with_depth,
+        with_layout=with_layout,
     )
     scene = load_scene(res.out_dir)
     for v in scene.manifest.views:

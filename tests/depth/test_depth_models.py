@@ -137,8 +137,10 @@ def test_contract_mismatches_are_refused_at_load(dk, scene, models, tmp_path):
         dk.run_depth(scene, tmp_path, model=str(models["metric"]), input_size=(64, 128))
     with pytest.raises(PanoError, match="not a multiple of 14"):
         dk.run_depth(scene, tmp_path, model=str(models["metric"]), multiple_of=14)
-    with pytest.raises(PanoError, match="not found"):
+    with pytest.raises(PanoError, match="depth model file does not exist"):
         dk.run_depth(scene, tmp_path, model=str(tmp_path / "none.onnx"))
+    with pytest.raises(PanoError, match="unknown model; known depth models: depth-anything-v2-small"):
+        dk.run_depth(scene, tmp_path, model="depth-anything-v3")
     with pytest.raises(PanoError, match="not available"):
         dk.run_depth(scene, tmp_path, model=str(models["metric"]), providers=["NoSuchExecutionProvider"])
     (tmp_path / "junk.onnx").write_bytes(b"junk")

@@ -221,7 +221,7 @@ def test_report_links_resolve_and_move_with_the_run(report, run_dir, sim_scene, 
         assert f"]({h})" in md
     cfg = yaml.safe_load((report.folder / "config.yaml").read_text())
     assert cfg["stages"]["train"]["iterations"] == 50 and cfg["stages"]["train"]["lr"] == {"means": 0.00016}
-    assert "| train | lr.means | 0.00016 |" in md and "| train | preset | fast |" in md
+    assert "| train.lr.means | 0.00016 |" in md and "| train.preset | fast |" in md
     # move the run folder (report included): every link still resolves
     moved = tmp_path / "elsewhere" / "run"
     shutil.copytree(run_dir, moved)

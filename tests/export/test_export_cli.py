@@ -83,6 +83,12 @@ def test_bad_options_are_refused_in_one_line(run_copy, capsys, tmp_path):
     assert code == 2 and len(out.strip().splitlines()) == 1, out
 
 
+def _glb_vertices(scene) -> np.ndarray:
+    """The vertices of a loaded .glb's one mesh (trimesh >= 4.5 names the call to_geometry)."""
+    return np.asarray(scene.to_geometry().vertices if hasattr(scene, "to_geometry")
+                      else scene.dump(concatenate=True).vertices)
+
+
 def test_mesh_export_from_a_trained_run(run_copy, trained_run, capsys):
     code, out = run_cli(["export", run_copy, "--format", "mesh", "--mesh-height", "32", "--mesh-depth", "7"],
                         capsys)
@@ -93,9 +99,20 @@ def test_mesh_export_from_a_trained_run(run_copy, trained_run, capsys):
     assert m.visual.vertex_colors.shape == (len(m.vertices), 4)
     scene = trimesh.load(glb)
     assert sum(len(geo.faces) for geo in scene.geometry.values()) == len(m.faces)
+    # the .glb is y up (glTF's axes), the .ply keeps the run's y-down world: the same vertices rotated
+    np.testing.assert_allclose(_glb_vertices(scene), np.asarray(m.vertices) * [1, -1, -1], atol=1e-5)
+    assert m.is_watertight and "watertight" in " ".join(out.split())
+    assert len(m.faces) == len(m.faces[m.area_faces > 1e-12])  # no degenerate face
     # both files refused the second time, nothing replaced
     code, out = run_cli(["export", run_copy, "--format", "mesh", "--out", glb], capsys)
     assert code == 2 and "already exists" in out
+    # --glb-axes pano-pipe: the .glb in the run's own axes, like the .ply
+    code, out = run_cli(["export", run_copy, "--format", "mesh", "--mesh-height", "32", "--mesh-depth", "7",
+                         "--glb-axes", "pano-pipe", "--out", run_copy / "export" / "raw.glb"], capsys)
+    assert code == 0, out
+    raw = trimesh.load(run_copy / "export" / "raw.glb")
+    twin = trimesh.load(run_copy / "export" / "raw.ply", process=False)  # written beside it, y down too
+    np.testing.assert_allclose(_glb_vertices(raw), np.asarray(twin.vertices), atol=1e-5)
     d = distance_to_box(np.asarray(m.vertices), room_box(trained_run / "S"))
     print(f"trained-run mesh: {len(m.vertices)} vertices, median distance to the true walls "
           f"{100 * np.median(d):.2f} cm, 90th percentile {100 * np.percentile(d, 90):.2f} cm")

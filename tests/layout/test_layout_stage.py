@@ -217,7 +217,7 @@ def test_skip_reason_and_params(tmp_path):
     assert layout.skip_reason(scene, layout.Params()) is None
     shutil.rmtree(root / "layout")
     assert layout.skip_reason(scene, layout.Params()) == (
-        "no layout source: no layout/ files and no `layout.model` configured"
+        "no layout source: no layout files and no layout model; get one: pano-pipe models fetch horizonnet-zind"
     )
     assert layout.skip_reason(scene, layout.Params(model=Path("m.onnx"))) is None
     from pydantic import ValidationError

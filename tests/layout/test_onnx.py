@@ -157,9 +157,10 @@ def test_true_boundary_model_through_the_whole_post_processing(tmp_path, preset)
     cols = np.unique(np.asarray(data["uv"])[::2, 0] * 1024)
     path = tmp_path / "truth.onnx"
     assert export_onnx(ConstantLayout(-gt, _corner_logits(cols)), path) < 1e-4
-    out, _ = run_layout(root, tmp_path / "out", model=path)
+    # The model ignores the image and answers in the view's own frame: no alignment.
+    out, _ = run_layout(root, tmp_path / "out", model=path, align="off")
     lay = out.view(view["name"])
-    assert lay.source == "model" and lay.method == "manhattan"
+    assert lay.source == "model" and lay.method == "manhattan" and lay.alignment is None
     ceiling = -plan["rooms"][0]["ceiling_y"]
     assert abs(lay.camera_height + lay.ceiling_distance - ceiling) < 0.01
     fitted = np.asarray(lay.floor_polygon)

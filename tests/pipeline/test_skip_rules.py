@@ -71,6 +71,8 @@ def test_status_table_says_why(scenes, tmp_path, capsys):
     run_ok(["status", str(scenes["bare"]), "--out", str(tmp_path / "run")])
     out = capsys.readouterr().out  # progress and tables go to stdout; stderr holds errors only
     assert "skipped" in out and "no layout source" in out and "missing" in out
+    # and the one line that says how to get a layout model
+    assert "pano-pipe models fetch horizonnet-zind" in " ".join(out.split())
 
 
 def test_schema_command_writes_every_schema(tmp_path):

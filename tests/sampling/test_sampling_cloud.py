@@ -162,6 +162,7 @@ def test_room_glb_is_the_extruded_plan(two_rooms, gt_union, tmp_path):
     union = gt_union(two_rooms)
     out, folder, _ = _run(two_rooms, union, tmp_path, density=50.0)
     mesh = trimesh.load(folder / out.mesh_glb, force="mesh")
+    mesh.apply_transform(np.diag([1.0, -1.0, -1.0, 1.0]))  # the file is y up (glTF); back to the y-down world
     room = union.rooms[0]
     outline = Polygon(room.polygon)
     assert mesh.is_watertight

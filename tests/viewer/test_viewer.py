@@ -323,3 +323,51 @@ def test_page_draws_the_splats_in_headless_chromium(viewer, capsys):
             br.close()
     finally:
         shutil.rmtree(profile, ignore_errors=True)
+
+
+# ------------------------------------------------------------------ first viewpoint, messages
+def test_look_along_room_faces_the_far_end_of_a_long_room():
+    from viewer.data import look_along_room
+
+    rng = np.random.default_rng(0)
+    # a 10 m x 3 m corridor (x from -1 to 9, z from -1.5 to 1.5), walls sampled densely, camera near x = 0
+    n = 4000
+    xs = rng.uniform(-1, 9, n)
+    m = n // 4
+
+    def end_wall(x: float) -> np.ndarray:
+        return np.stack([np.full(m, x), rng.uniform(-1, 1, m), rng.uniform(-1.5, 1.5, m)], 1)
+
+    walls = np.concatenate([np.stack([xs, rng.uniform(-1, 1, n), np.full(n, -1.5)], 1),
+                            np.stack([xs, rng.uniform(-1, 1, n), np.full(n, 1.5)], 1),
+                            end_wall(-1.0), end_wall(9.0)])
+    d = look_along_room(np.zeros(3), walls)
+    assert d[1] == 0 and np.linalg.norm(d) == pytest.approx(1.0)
+    assert d[0] > 0.97  # along +x, down the corridor
+    assert np.allclose(look_along_room(np.zeros(3), walls[:5]), [0, 0, 1])  # too few points: +z
+
+
+def test_viewer_starts_at_the_first_training_camera_looking_along_the_room(viewer):
+    from viewer.data import look_along_room
+
+    first = next(c for c in viewer.cameras if c.split == "train")
+    cam = viewer.server.initial_camera
+    position = np.asarray(cam.position, dtype=np.float64)
+    np.testing.assert_allclose(position, first.c2w[:3, 3], atol=1e-6)
+    ahead = np.asarray(cam.look_at, dtype=np.float64) - position
+    assert abs(ahead[1]) < 1e-6  # level
+    from viewer.data import splats_from_model
+
+    expected = look_along_room(position, splats_from_model(viewer.model).centers)
+    np.testing.assert_allclose(ahead / np.linalg.norm(ahead), expected, atol=1e-5)
+
+
+def test_panorama_messages_name_the_real_folder(tmp_path, monkeypatch):
+    from viewer.server import shown_path
+
+    monkeypatch.chdir(tmp_path)
+    assert shown_path(tmp_path / "runs" / "demo" / "view") == "runs/demo/view"
+    assert shown_path(Path("runs/demo/view")) == "runs/demo/view"
+    elsewhere = Path(tempfile.gettempdir()).resolve() / "elsewhere"
+    if not str(elsewhere).startswith(str(tmp_path)):
+        assert shown_path(elsewhere) == elsewhere.as_posix()

@@ -1,0 +1,129 @@
+"""`models fetch`: download a known model with its host's own client, check its SHA-256,
+export it to ONNX once and keep both files in the cache.
+
+Clients: gdown for Google Drive (its confirmation page for large files), huggingface_hub
+for Hugging Face, pooch for plain URLs (which checks the hash while it downloads).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from models.registry import KnownModel, get_model
+from models.store import (
+    cache_dir,
+    checkpoint_path,
+    expected_sha256,
+    export,
+    load_exporter,
+    onnx_path,
+    read_record,
+    record_path,
+    sha256_file,
+    write_record,
+)
+from runfs.errors import PanoError
+
+
+@dataclass
+class Fetched:
+    entry: KnownModel
+    checkpoint: Path
+    onnx: Path
+    sha256: str
+    downloaded: bool
+    exported: bool
+
+
+def _first_line(e: BaseException) -> str:
+    text = " ".join(str(e).split())
+    return f"{type(e).__name__}: {text[:200]}" if text else type(e).__name__
+
+
+def _download(entry: KnownModel, folder: Path, want: str | None) -> Path:
+    """Download into `folder` with the host's client; returns the file."""
+    quiet = not sys.stderr.isatty()
+    if entry.host == "gdrive":
+        import gdown
+
+        out = folder / entry.filename
+        got = gdown.download(id=entry.source, output=str(out), quiet=quiet)
+        if not got or not out.is_file():
+            raise OSError("Google Drive returned no file")
+        return out
+    if entry.host == "huggingface":
+        from huggingface_hub import hf_hub_download
+
+        return Path(hf_hub_download(entry.source, entry.filename, local_dir=folder))
+    import pooch
+
+    pooch.get_logger().setLevel("WARNING")  # its advice to pin the hash is ours to give
+    try:
+        return Path(pooch.retrieve(entry.source, known_hash=f"sha256:{want}" if want else None,
+                                   fname=entry.filename, path=folder, progressbar=not quiet))
+    except ValueError as e:  # pooch's hash check; it has removed the file
+        if "hash" in str(e).lower():
+            raise PanoError(entry.url, f"the download's SHA-256 does not match {want}; nothing was kept "
+                                       f"(pooch: {' '.join(str(e).split())[:160]})") from None
+        raise
+
+
+def fetch(name: str, force: bool = False, log=print) -> Fetched:
+    """Make `name` ready to use: checkpoint in the cache (downloaded unless present), hash checked,
+    ONNX exported once. `force` downloads and exports again (and re-pins an unpublished hash)."""
+    entry = get_model(name)
+    load_exporter(entry.exporter)  # before a download it could not use
+    ckpt, onnx = checkpoint_path(entry), onnx_path(entry)
+    cache = cache_dir()
+    cache.mkdir(parents=True, exist_ok=True)
+    if force:
+        for p in (ckpt, onnx, record_path(entry)):
+            p.unlink(missing_ok=True)
+    want = expected_sha256(entry)
+    downloaded = False
+    if ckpt.is_file():
+        log(f"{entry.filename} is in the cache ({ckpt}); checking it")
+        digest = sha256_file(ckpt)
+        if want is not None and digest != want:
+            raise PanoError(ckpt, f"SHA-256 {digest} does not match {entry.name}'s {want}: remove the "
+                                  f"file or run `pano-pipe models fetch {entry.name} --force`")
+    else:
+        size = f" (about {entry.size_mb:.0f} MB)" if entry.size_mb else ""
+        log(f"downloading {entry.filename}{size} from {entry.host_name}: {entry.url}")
+        with tempfile.TemporaryDirectory(prefix=".fetch-", dir=cache) as tmp:
+            try:
+                got = _download(entry, Path(tmp), want)
+            except PanoError:
+                raise
+            except Exception as e:  # the clients raise their own types for no network, 404, quota
+                raise PanoError(entry.url, f"cannot download {entry.filename} ({_first_line(e)}): download it "
+                                           f"by hand and put it at {ckpt}") from None
+            digest = sha256_file(got)
+            if want is not None and digest != want:
+                raise PanoError(entry.url, f"the download's SHA-256 {digest} does not match {want}; "
+                                           "nothing was kept")
+            os.replace(got, ckpt)
+        downloaded = True
+    if entry.sha256 is None and want is None:
+        log(f"SHA-256 {digest} (the authors publish none: pinned now, later uses are checked against it)")
+    else:
+        log(f"SHA-256 {digest} verified")
+    exported = False
+    if force or not onnx.is_file() or read_record(entry).get("sha256") != digest:
+        log(f"exporting to ONNX with {entry.exporter}")
+        try:
+            export(ckpt, onnx, entry.exporter)
+        except PanoError as e:
+            if downloaded:  # not the model (an error page, a truncated file): do not keep it
+                ckpt.unlink(missing_ok=True)
+                raise PanoError(e.where, f"{e.problem} (the download was removed)") from None
+            raise
+        exported = True
+    write_record(entry, digest)
+    auto = " (scenes without layout files use it by default)" if entry.kind == "layout" else ""
+    log(f"ready: {onnx}; select it with --set {entry.kind}.model={entry.name}{auto}")
+    return Fetched(entry, ckpt, onnx, digest, downloaded, exported)
