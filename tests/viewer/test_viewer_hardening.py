@@ -6,9 +6,7 @@ from __future__ import annotations
 import socket
 import threading
 import time
-from pathlib import Path
 
-import numpy as np
 import pytest
 
 from simulate.generate import generate_scene
