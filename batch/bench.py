@@ -14,7 +14,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from pipeline.fsutil import atomic_write_text
+from runfs.fsutil import atomic_write_text
 
 
 def bench_batch(scenes: int, height: int, iterations: int, executors: list[str], out_md: Path, out_json: Path,

@@ -8,6 +8,7 @@ scheduler's: it only submits jobs whose inputs are done.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 from collections.abc import Callable, Hashable
@@ -17,6 +18,77 @@ from typing import Any, Protocol
 #: not inherit the driver's environment).
 FORWARDED_ENV = ("PANO_PIPE_MAX_MEGAPIXELS", "PANO_PIPE_CACHE", "PANO_PIPE_BUILD_WAIT",
                  "PANO_PIPE_LPIPS_WEIGHTS", "PANO_PIPE_INJECT_KILL_ONCE")
+
+
+#: Seconds to wait for a Ray cluster at --address (`--connect-timeout`); Ray itself retries for
+#: minutes, silently.
+DEFAULT_CONNECT_TIMEOUT = 30.0
+
+
+def _host_port(address: str) -> tuple[str, int] | None:
+    """(host, port) of a Ray address ("host:port", "ray://host:port"), or None when it names no
+    socket ("auto", "local": Ray finds the cluster itself)."""
+    from urllib.parse import urlsplit
+
+    text = address if "://" in address else f"ray://{address}"
+    try:
+        parts = urlsplit(text)
+        port = parts.port
+    except ValueError:
+        port = None
+        parts = None
+    if parts is None or not parts.hostname or port is None:
+        return None
+    return parts.hostname, port
+
+
+def check_reachable(address: str, timeout: float) -> None:
+    """Refuse, in one line, a Ray address nothing answers at within `timeout` seconds."""
+    import socket
+
+    from runfs.errors import PanoError
+
+    if address in ("auto", "local"):
+        return
+    host_port = _host_port(address)
+    if host_port is None:
+        raise PanoError("--address", f"{address!r} is not HOST:PORT, ray://HOST:PORT or auto")
+    try:
+        socket.create_connection(host_port, timeout=timeout).close()
+    except OSError as e:
+        why = "timed out" if isinstance(e, TimeoutError) else (e.strerror or str(e))
+        raise PanoError("--address", f"cannot reach a Ray cluster at {address}: {why} "
+                                     f"(within {timeout:g} s; --connect-timeout)") from None
+
+
+@contextlib.contextmanager
+def bounded_connect(seconds: float | None, problem: str):
+    """Run the block (ray.init) with Ray's C++ log kept off stderr, and end the process with the
+    one line `error: --address: <problem>` (exit 2) if it runs longer than `seconds`. ray.init
+    blocks in C++ retrying an address where something other than Ray listens, where no Python
+    signal handler runs; nothing is written before it (the batch has not started), so the
+    watchdog may end the process at once."""
+    import tempfile
+    import threading
+
+    saved = os.dup(2)
+    log = tempfile.TemporaryFile()
+    os.dup2(log.fileno(), 2)
+    done = threading.Event()
+
+    def watchdog() -> None:
+        if seconds is not None and not done.wait(seconds):
+            os.write(saved, f"error: --address: {problem}\n".encode())
+            os._exit(2)
+
+    threading.Thread(target=watchdog, name="ray-connect-timeout", daemon=True).start()
+    try:
+        yield
+    finally:
+        done.set()
+        os.dup2(saved, 2)
+        os.close(saved)
+        log.close()
 
 
 class Executor(Protocol):
@@ -85,11 +157,17 @@ class RayExecutor:
     shares_cores = True
     reports_start = False
 
-    def __init__(self, address: str | None = None, num_cpus: int | None = None, retries: int = 2):
+    def __init__(self, address: str | None = None, num_cpus: int | None = None, retries: int = 2,
+                 connect_timeout: float = DEFAULT_CONNECT_TIMEOUT):
+        # Ray's C++ core logs warnings straight to stderr, which holds only our error line
+        # (docs/security.md); while connecting they are diverted (bounded_connect)
+        os.environ.setdefault("RAY_BACKEND_LOG_LEVEL", "error")
+        if address:
+            check_reachable(address, connect_timeout)
         try:
             import ray
         except ImportError:
-            from pipeline.errors import PanoError
+            from runfs.errors import PanoError
 
             raise PanoError("--executor ray", "Ray is not installed: pip install 'pano-pipe[ray]'") from None
         self._ray = ray
@@ -106,7 +184,10 @@ class RayExecutor:
                 kwargs["address"] = address
             elif num_cpus:
                 kwargs["num_cpus"] = num_cpus
-            ray.init(**kwargs)
+            with bounded_connect(connect_timeout if address else None,
+                                 f"no Ray cluster answered at {address} within {connect_timeout:g} s "
+                                 "(something else listens there?); check --address, or raise --connect-timeout"):
+                ray.init(**kwargs)
             self._owns_ray = True
         else:
             self._owns_ray = False
@@ -154,11 +235,11 @@ class RayExecutor:
 
 
 def make_executor(name: str, address: str | None = None, num_cpus: int | None = None,
-                  retries: int = 2) -> Executor:
+                  retries: int = 2, connect_timeout: float = DEFAULT_CONNECT_TIMEOUT) -> Executor:
     if name == "local":
         return LocalExecutor()
     if name == "ray":
-        return RayExecutor(address, num_cpus, retries)
-    from pipeline.errors import PanoError
+        return RayExecutor(address, num_cpus, retries, connect_timeout)
+    from runfs.errors import PanoError
 
     raise PanoError("--executor", f"must be local or ray, got {name!r}")

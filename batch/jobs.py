@@ -52,9 +52,9 @@ def run_stage_job(job: StageJob) -> JobOutcome:
     """Bring `job.stage` of its scene up to date; every failure is returned, never raised
     (except an interrupt, which the executor handles)."""
     from pipeline.engine import Engine
-    from pipeline.errors import PanoError
+    from runfs.errors import PanoError
     from pipeline.registry import build_registry
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
 
     where = {"host": socket.gethostname(), "pid": os.getpid()}
     _maybe_inject_kill(job.stage)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 MANIFEST = "scene.json"
 

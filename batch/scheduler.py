@@ -19,7 +19,7 @@ from batch.executors import Executor
 from batch.jobs import JobOutcome, StageJob, run_stage_job
 from batch.progress import Board
 from batch.scenes import run_folders
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 DONE = ("ran", "cached", "skipped")
 
@@ -68,9 +68,10 @@ def run_batch(scene_dirs: list[Path], out_root: Path, config: dict, config_sourc
     """Run the selected stages of every scene; returns one result per scene, in order. `target`,
     `force` and `force_upstream` as in Engine.run."""
     from pipeline.engine import Engine, select_stages
-    from pipeline.fsutil import run_folder_lock
+    from runfs.fsutil import run_folder_lock
+    from runfs.paths import run_folder_name
     from pipeline.registry import build_registry
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
 
     registry = build_registry()
     selected = select_stages(registry, target, until)  # an unknown stage fails the whole command
@@ -79,6 +80,7 @@ def run_batch(scene_dirs: list[Path], out_root: Path, config: dict, config_sourc
     for scene_dir in scene_dirs:  # a scene that does not load fails alone, before anything runs
         try:
             scene = load_scene(scene_dir)
+            run_folder_name(scene.name, scene.root)  # the batch's OUT/<name>/, as a single run's runs/<name>/
         except PanoError as e:
             results.append(SceneResult(Path(scene_dir).name, scene_dir, None, error=str(e), exit_code=e.exit_code))
             continue

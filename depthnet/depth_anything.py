@@ -30,7 +30,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from depthnet.runner import write_metadata
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 PATCH = 14
 IMAGENET_MEAN = (0.485, 0.456, 0.406)

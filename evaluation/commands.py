@@ -12,7 +12,8 @@ import typer
 from rich.markup import escape
 
 from pipeline.console import console
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
+from runfs.paths import run_path
 
 # Same option shapes as pipeline/cli.py (redeclared: cli imports this module, so importing
 # its annotations at module level would be circular).
@@ -199,7 +200,7 @@ def render_command(
         h, w = even_size(h, 2 * int(round(h * 2 / 3)) if persp else 2 * h)
         camera = pinhole_camera(h, w) if persp else equirect_camera(h, w)
     g = load_model(train.path(train.data.ply))
-    target = output_path(engine.out_dir / "render", path, "persp" if persp else "pano", overwrite=overwrite)
+    target = output_path(run_path(engine.out_dir, "render"), path, "persp" if persp else "pano", overwrite=overwrite)
     res = render_flythrough(g, poses, camera, target, fps=fps, backend=backend, track=track)
     console.print(f"[bold]video:[/] {escape(str(res.path))} ({res.frames} frames, {res.size[1]}×{res.size[0]}, "
                   f"H.264, {fps:g} fps, {res.frames / max(res.seconds, 1e-9):.1f} frames/s rendered)")

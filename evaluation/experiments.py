@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import PanoError
-from pipeline.paths import RUN_MARKER
+from runfs.errors import PanoError
+from runfs.paths import RUN_MARKER, run_path
 
 # Paper's ablation on one Matterport3D scene, 4 views (DESIGN.md), for context in the table.
 PAPER_PSNR = {"3D-GS*": 13.64, "+ layout init": 15.98, "+ 360 splatting": 16.66, "+ layout reg": 17.72}
@@ -322,7 +322,7 @@ def run_ablation(scene, base_dir: Path, base_config: dict, seeds: int = 1, itera
     if seeds < 1:
         raise PanoError("--seeds", "must be at least 1")
     variants = ablation_variants(baseline) if variants is None else variants
-    out_dir = Path(out_dir) if out_dir is not None else base_dir / "ablate"
+    out_dir = Path(out_dir) if out_dir is not None else run_path(base_dir, "ablate")
     reg = build_registry()
     fields = train_param_fields()
     # The shared upstream stages, once, in the main run folder (cached if already there);
@@ -520,7 +520,7 @@ def run_sweep(scene, base_dir: Path, base_config: dict, iterations: list[int], h
     from pipeline.engine import Engine
     from pipeline.registry import build_registry
 
-    out_dir = Path(out_dir) if out_dir is not None else base_dir / "sweep"
+    out_dir = Path(out_dir) if out_dir is not None else run_path(base_dir, "sweep")
     reg = build_registry()
     fields = train_param_fields()
     res_name = next((n for n in _PARAM_ALIASES["resolution"] if n in fields), None)

@@ -180,7 +180,7 @@ def spin_poses(pose: np.ndarray, frames: int) -> np.ndarray:
 
 def path_views(scene, path: str):
     """The views a path goes through: 'train', 'test', 'all' (manifest order) or 'name1,name2,...'."""
-    from pipeline.errors import PanoError
+    from runfs.errors import PanoError
 
     m = scene.manifest
     if path == "train":
@@ -228,7 +228,7 @@ _CAMERA_TYPES = {"perspective": "perspective", "equirectangular": "equirectangul
 
 
 def _number(value, where: Path, field: str, positive: bool = True) -> float:
-    from pipeline.errors import PanoError
+    from runfs.errors import PanoError
 
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)):
         raise PanoError(where, f"{field}: must be a finite number, got {str(value)[:40]!r}")
@@ -240,7 +240,7 @@ def _number(value, where: Path, field: str, positive: bool = True) -> float:
 def read_camera_path(file: str | Path, world_up: str = "+z") -> CameraPath:
     """A nerfstudio camera_path.json as pano-pipe poses; every problem a one-line PanoError
     naming the file and the field."""
-    from pipeline.errors import PanoError, read_json
+    from runfs.errors import PanoError, read_json
     from pipeline.importers import check_world_up, nerfstudio_to_pose, rigid_matrix
 
     file = Path(file)
@@ -327,7 +327,7 @@ def write_video(frames_rgb, out_path: Path, fps: float = 24.0, crf: int = CRF) -
     """Write float RGB [H,W,3] frames in [0,1] (an iterable) as an H.264 mp4 (yuv420p,
     +faststart); returns the frame count. An odd-sized frame is padded by repeating its
     last row/column. The file appears only when complete."""
-    from pipeline.fsutil import atomic_write
+    from runfs.fsutil import atomic_write
 
     written = 0
 

@@ -16,7 +16,12 @@ def load_model(path: str | Path, device: str = "cpu"):
         from gaussians import load_ply
     except ImportError:  # the package may not re-export it
         from gaussians.ply import load_ply
-    g = load_ply(path)
+    from runfs.errors import PanoError
+
+    try:
+        g = load_ply(path)
+    except (ValueError, OSError) as e:  # a malformed, truncated or boastful PLY: bad input, one line
+        raise PanoError(path, str(e).removeprefix(f"{path}: ")) from None
     return g.to(device=device) if device != "cpu" else g
 
 

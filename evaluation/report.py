@@ -27,6 +27,10 @@ import numpy as np
 
 from evaluation.report_sections import STAGE_SECTIONS, SectionContext, export_links, settings_section, \
     settings_without_effect
+from runfs.errors import PanoError
+from runfs.limits import load_npy
+from runfs.paths import run_path
+
 
 def stage_order() -> tuple[str, ...]:
     """The pipeline's stages in DAG order (pipeline/registry.py), as `run` executes them."""
@@ -34,6 +38,8 @@ def stage_order() -> tuple[str, ...]:
     from pipeline.registry import build_registry
 
     return tuple(topological_order(build_registry()))
+
+
 METRIC_LABELS = {
     "psnr": "PSNR (dB) ↑",
     "ssim": "SSIM ↑",
@@ -386,7 +392,8 @@ def run_links(run_dir: Path, out_dir: Path, config_path: Path) -> list[tuple[str
     that exist; hrefs are relative to the report folder so the two move together."""
     items: list[tuple[Path, str]] = []
     tr = read_artifact(run_dir, "train")
-    ply = run_dir / "train" / ((tr or {}).get("data", {}).get("ply") or "point_cloud.ply")
+    train_data = (tr or {}).get("data") if isinstance((tr or {}).get("data"), dict) else {}
+    ply = run_path(run_dir / "train", train_data.get("ply") or "point_cloud.ply", named_by="train/artifact.json")
     items.append((ply, "trained model (3D Gaussians, PLY)"))
     for video in sorted((run_dir / "render").glob("*.mp4")):
         if video.name.startswith("."):
@@ -395,7 +402,7 @@ def run_links(run_dir: Path, out_dir: Path, config_path: Path) -> list[tuple[str
     items += export_links(run_dir)
     items.append((config_path, "configuration: every stage's parameters (YAML)"))
     items.append((run_dir / "run_log.jsonl", "run log (run_log.jsonl)"))
-    log = run_dir / "train" / ((tr or {}).get("data", {}).get("log") or "train_log.jsonl")
+    log = run_path(run_dir / "train", train_data.get("log") or "train_log.jsonl", named_by="train/artifact.json")
     items.append((log, "training log (train_log.jsonl)"))
     items.append((run_dir / "evaluate" / "metrics.csv", "per-view metrics (CSV)"))
     out = []
@@ -455,22 +462,26 @@ def view_images(edir: Path, v: dict, scene, view, img_dir: Path) -> tuple[list[t
         write_colorbar(path, vmin, vmax, cmap, units)
         return path, f"{units}, {vmin:.3g} … {vmax:.3g}"
 
-    items: list[tuple] = [(edir / v["gt"], "ground truth"), (edir / v["render"], "render")]
-    items.append((edir / v["error"], f"|error|, 0 … {ERROR_VMAX:g} (image intensity)",
+    def named(key: str) -> Path:  # a file the artifact names: inside evaluate/, never through a link
+        return run_path(edir, v[key], named_by="evaluate/artifact.json")
+
+    items: list[tuple] = [(named("gt"), "ground truth"), (named("render"), "render")]
+    items.append((named("error"), f"|error|, 0 … {ERROR_VMAX:g} (image intensity)",
                   cbar("error", 0.0, ERROR_VMAX, "inferno", ERROR_UNITS)))
     depth = None
-    npy = edir / v["depth_npy"] if v.get("depth_npy") else None
+    npy = named("depth_npy") if v.get("depth_npy") else None
     if npy is not None and npy.is_file():
         try:
-            depth = np.load(npy, allow_pickle=False).astype(np.float64)
-        except (OSError, ValueError):
+            depth = load_npy(npy, pixels=True).astype(np.float64)
+        except PanoError as e:  # a bad file must not stop the report
+            notes.append(f"Rendered depth {npy.name} unreadable: {e.problem}")
             depth = None
     if depth is not None:
         dmax = depth_vmax(depth)
-        items.append((edir / v["depth"], f"rendered depth, 0 … {dmax:.3g} m",
+        items.append((named("depth"), f"rendered depth, 0 … {dmax:.3g} m",
                       cbar("depth", 0.0, dmax, "turbo", DEPTH_UNITS)))
     else:
-        items.append((edir / v["depth"], "rendered depth (scale not recorded: no depth .npy)"))
+        items.append((named("depth"), "rendered depth (scale not recorded: no depth .npy)"))
     items = [it for it in items if it[0].is_file()]
 
     gt_path = scene.gt_depth_path(view) if scene is not None and view is not None else None
@@ -479,7 +490,6 @@ def view_images(edir: Path, v: dict, scene, view, img_dir: Path) -> tuple[list[t
     if depth is None:
         notes.append("Ground-truth depth exists but the rendered depth (.npy) is missing: no depth-error map.")
         return items, notes
-    from pipeline.errors import PanoError
     from stages.evaluate import load_gt_depth
 
     try:
@@ -491,7 +501,7 @@ def view_images(edir: Path, v: dict, scene, view, img_dir: Path) -> tuple[list[t
     write_rgb(gt_png, depth_rgb(gt, vmax=dmax))
     items.append((gt_png, f"ground-truth depth, 0 … {dmax:.3g} m", cbar("gt-depth", 0.0, dmax, "turbo", DEPTH_UNITS)))
     err, valid = depth_error(depth, gt)
-    from pipeline.scene_loader import valid_mask
+    from schemas.scene_loader import valid_mask
 
     kept = valid_mask(scene, view, *depth.shape)  # the metrics' mask: masked pixels are grey here too
     if kept is not None:
@@ -537,8 +547,15 @@ def _fmt(v, digits: int = 4) -> str:
     return str(v)
 
 
+def md_text(text: str) -> str:
+    """Text for report.md: HTML in it (from artifacts, view names, notes) shown, not interpreted,
+    as report.html shows it (Markdown renders inline HTML)."""
+    return html.escape(str(text), quote=False)
+
+
 class _Doc:
-    """Builds the HTML and Markdown side by side so they always hold the same content."""
+    """Builds the HTML and Markdown side by side so they always hold the same content; text goes
+    into both escaped (html.escape, md_text)."""
 
     def __init__(self, img_dir: Path):
         self.html: list[str] = []
@@ -548,21 +565,21 @@ class _Doc:
     def h(self, level: int, text: str, anchor: str | None = None) -> None:
         a = f' id="{anchor}"' if anchor else ""
         self.html.append(f"<h{level}{a}>{html.escape(text)}</h{level}>")
-        self.md.append(f"\n{'#' * level} {text}\n")
+        self.md.append(f"\n{'#' * level} {md_text(text)}\n")
 
     def p(self, text: str, cls: str = "") -> None:
         c = f' class="{cls}"' if cls else ""
         self.html.append(f"<p{c}>{html.escape(text)}</p>")
-        self.md.append(f"{'> ' if cls == 'warn' else ''}{text}\n")
+        self.md.append(f"{'> ' if cls == 'warn' else ''}{md_text(text)}\n")
 
     def table(self, header: list[str], rows: list[list[str]]) -> None:
         th = "".join(f"<th>{html.escape(h)}</th>" for h in header)
         trs = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows)
         self.html.append(f"<table><thead><tr>{th}</tr></thead><tbody>{trs}</tbody></table>")
-        self.md.append("| " + " | ".join(header) + " |")
+        self.md.append("| " + " | ".join(md_text(h) for h in header) + " |")
         self.md.append("|" + "---|" * len(header))
         for r in rows:
-            self.md.append("| " + " | ".join(c.replace("|", "\\|") for c in r) + " |")
+            self.md.append("| " + " | ".join(md_text(c).replace("|", "\\|") for c in r) + " |")
         self.md.append("")
 
     def details(self, summary: str, header: list[str], rows: list[list[str]]) -> None:
@@ -578,7 +595,7 @@ class _Doc:
         lis = "".join(f'<li><a href="{html.escape(href)}">{html.escape(text)}</a></li>' for href, text in items)
         self.html.append(f"<ul>{lis}</ul>")
         for href, text in items:
-            self.md.append(f"- [{text}]({href.replace(' ', '%20')})")
+            self.md.append(f"- [{md_text(text)}]({href.replace(' ', '%20')})")
         self.md.append("")
 
     def _embed(self, src: Path, name_prefix: str) -> tuple[str, str]:
@@ -605,17 +622,17 @@ class _Doc:
                 cb64, cb_name = self._embed(cbar[0], name_prefix)
                 alt = f"colour bar: {cbar[1]}"
                 extra = f'<img class="cbar" alt="{html.escape(alt)}" src="data:image/png;base64,{cb64}">'
-                md_extra = f"<br>![{alt}]({self.img_dir.name}/{cb_name})"
+                md_extra = f"<br>![{md_text(alt)}]({self.img_dir.name}/{cb_name})"
             figs.append(
                 f'<figure><img alt="{html.escape(caption)}" src="data:image/png;base64,{b64}">{extra}'
                 f"<figcaption>{html.escape(caption)}</figcaption></figure>"
             )
-            mds.append(f"![{caption}]({self.img_dir.name}/{dst_name}){md_extra}")
+            mds.append(f"![{md_text(caption)}]({self.img_dir.name}/{dst_name}){md_extra}")
         cls = "row single" if len(figs) == 1 else "row"
         self.html.append(f'<div class="{cls}">' + "".join(figs) + "</div>")
         if any(len(i) > 2 and i[2] is not None for i in items):
             # maps with colour bars: one table cell each, so a bar stays under its map
-            self.md.append("| " + " | ".join(str(i[1]).replace("|", "\\|") for i in items) + " |")
+            self.md.append("| " + " | ".join(md_text(i[1]).replace("|", "\\|") for i in items) + " |")
             self.md.append("|" + "---|" * len(items))
             self.md.append("| " + " | ".join(m.replace("|", "\\|") for m in mds) + " |\n")
         else:
@@ -644,8 +661,8 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
     `states` (stage -> up-to-date / stale / missing / skipped, from Engine.plan) adds a column
     saying whether each stage's result is current."""
     run_dir = Path(run_dir)
-    out_dir = Path(out_dir) if out_dir is not None else run_dir / "report"
-    img_dir = out_dir / "img"
+    out_dir = Path(out_dir) if out_dir is not None else run_path(run_dir, "report")
+    img_dir = run_path(out_dir, "img")
     if img_dir.exists():
         shutil.rmtree(img_dir)
     img_dir.mkdir(parents=True)
@@ -736,7 +753,8 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
             ["final train PSNR", _fmt(td.get("final_train_psnr"))],
         ]
         doc.table(["setting", "value"], summary)
-        series = training_series(read_jsonl(run_dir / "train" / td.get("log", "train_log.jsonl")))
+        series = training_series(read_jsonl(run_path(run_dir / "train", td.get("log") or "train_log.jsonl",
+                                                     named_by="train/artifact.json")))
         final_test = None
         if ev is not None and isinstance(ev["data"].get("mean", {}).get("psnr"), (int, float)):
             last_it = td.get("iterations")

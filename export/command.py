@@ -19,7 +19,7 @@ import typer
 from rich.markup import escape
 
 from pipeline.console import console
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 EXTENSIONS = {"ply": ".ply", "splat": ".splat", "spz": ".spz", "mesh": ".ply"}
 
@@ -48,7 +48,7 @@ RunArg = Annotated[Path, typer.Argument(help="Run folder (holding train/point_cl
 def load_run_model(run: Path):
     """The trained Gaussians of a run folder; every problem a one-line PanoError."""
     from gaussians.ply import load_ply
-    from pipeline.errors import read_json
+    from runfs.errors import read_json
 
     run = Path(run)
     if not run.exists():
@@ -78,8 +78,10 @@ def load_run_model(run: Path):
 
 
 def default_output(run: Path, fmt: str, y_up: bool) -> Path:
+    from runfs.paths import run_path
+
     stem = "mesh" if fmt == "mesh" else "point_cloud"
-    return Path(run) / "export" / f"{stem}{'_yup' if y_up else ''}{EXTENSIONS[fmt]}"
+    return run_path(run, f"export/{stem}{'_yup' if y_up else ''}{EXTENSIONS[fmt]}")
 
 
 def output_paths(run: Path, fmt: str, y_up: bool, out: Path | None) -> list[Path]:
@@ -98,10 +100,10 @@ def output_paths(run: Path, fmt: str, y_up: bool, out: Path | None) -> list[Path
 def scene_cameras(run: Path) -> tuple[list[np.ndarray] | None, str | None]:
     """Camera-to-world poses of the run's training views (from the scene its marker names),
     or (None, why not)."""
-    from pipeline.paths import RUN_MARKER
+    from runfs.paths import RUN_MARKER
     from pipeline.engine import complete_scene
     from pipeline.registry import build_registry
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
 
     marker = Path(run) / RUN_MARKER
     try:
@@ -176,10 +178,12 @@ def export_command(
 ) -> None:
     """Export a run's trained Gaussians (.ply / .splat / .spz) or a coloured mesh of the room."""
     from export.fileio import check_writable
-    from pipeline.fsutil import atomic_write
+    from runfs.fsutil import atomic_write
+    from runfs.paths import open_run_folder
     from export.transform import to_y_up, y_up_points
 
     fmt = ExportFormat(format).value
+    open_run_folder(run)  # a run folder holding a symbolic link is refused before anything is read
     targets = output_paths(run, fmt, y_up, out)
     for t in targets:  # refuse before any work
         check_writable(t, overwrite)

@@ -1,10 +1,10 @@
-"""Output paths of the export command (files are written with pipeline.fsutil.atomic_write)."""
+"""Output paths of the export command (files are written with runfs.fsutil.atomic_write)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 
 def check_writable(path: Path, overwrite: bool) -> None:

@@ -23,12 +23,15 @@ point_cloud.ply is written without them.
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from gaussians.model import Gaussians
+from runfs.errors import PanoError
+from runfs.limits import check_ply_count
 
 __all__ = ["save_ply", "load_ply", "ply_property_names"]
 
@@ -103,7 +106,10 @@ def _parse_header(f, path: Path) -> tuple[str, int, list[tuple[str, str]]]:
         elif tok[0] == "element":
             current = tok[1]
             if current == "vertex":
-                count = int(tok[2])
+                try:
+                    count = int(tok[2])
+                except (IndexError, ValueError):
+                    raise ValueError(f"{path}: PLY element vertex has no count") from None
             elif count is None:
                 raise ValueError(f"{path}: element {current!r} before vertex is not supported")
         elif tok[0] == "property" and current == "vertex":
@@ -126,6 +132,12 @@ def load_ply(path: str | Path, dtype=torch.float32) -> Gaussians:
     path = Path(path)
     with open(path, "rb") as f:
         fmt, n, props = _parse_header(f, path)
+        data_bytes = os.fstat(f.fileno()).st_size - f.tell()
+        record = sum(np.dtype(t).itemsize for _, t in props)
+        try:  # the header's count against the file, before anything is allocated
+            check_ply_count(path, n, record, data_bytes, ascii_values=len(props) if fmt == "ascii" else 0)
+        except PanoError as e:
+            raise ValueError(f"{path}: {e.problem}") from None
         if fmt == "ascii":
             arr = np.loadtxt(f, dtype=np.float64, max_rows=n, ndmin=2)
             if arr.shape != (n, len(props)):

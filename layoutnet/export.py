@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 MAX_DIFF = 1e-4
 

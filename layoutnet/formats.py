@@ -14,7 +14,8 @@ from typing import Literal
 
 import numpy as np
 
-from pipeline.errors import PanoError, load_npy
+from runfs.errors import PanoError
+from runfs.limits import load_npy
 
 #: HorizonNet's JSON stores corners normalised by the size it infers at.
 HORIZONNET_W, HORIZONNET_H = 1024, 512

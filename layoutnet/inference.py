@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 INPUT_SHAPE = (1, 3, 512, 1024)
 OUTPUT_SHAPES = {"bon": (1, 2, 1024), "cor": (1, 1, 1024)}

@@ -26,7 +26,7 @@ from models.store import (
     sha256_file,
     write_record,
 )
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 
 @dataclass

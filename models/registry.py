@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Literal
 
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 Kind = Literal["layout", "depth"]
 Host = Literal["gdrive", "huggingface", "url"]

@@ -19,7 +19,7 @@ import tempfile
 from pathlib import Path
 
 from models.registry import DEFAULT_EXPORTERS, KnownModel, get_model, known_models
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 CACHE_ENV = "PANO_PIPE_MODELS_DIR"
 CHECKPOINT_SUFFIXES = (".pth", ".pt", ".ckpt")

@@ -24,8 +24,8 @@ from pathlib import Path
 
 import torch
 
-from pipeline.errors import PanoError
-from pipeline.fsutil import atomic_write_text
+from runfs.errors import PanoError
+from runfs.fsutil import atomic_write_text
 
 # Runs one step of the bench inside a checkout (argv: scene, run folder, config JSON, until or "").
 # Plain engine calls that every version of pano-pipe with `train.iterations` understands.
@@ -34,7 +34,10 @@ import json, sys, time
 from pathlib import Path
 from pipeline.engine import Engine
 from pipeline.registry import build_registry
-from pipeline.scene_loader import load_scene
+try:  # where scene loading lives in this checkout's version
+    from schemas.scene_loader import load_scene
+except ImportError:
+    from pipeline.scene_loader import load_scene
 scene, run_dir, config, until = Path(sys.argv[1]), Path(sys.argv[2]), json.loads(sys.argv[3]), sys.argv[4] or None
 t0 = time.perf_counter()
 Engine(load_scene(scene), run_dir, build_registry(), config).run(until=until)

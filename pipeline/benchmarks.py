@@ -11,7 +11,7 @@ from pathlib import Path
 from rich.markup import escape
 
 from pipeline.console import console
-from pipeline.fsutil import atomic_write_text
+from runfs.fsutil import atomic_write_text
 
 
 def bench_pipeline(
@@ -20,7 +20,7 @@ def bench_pipeline(
     """Run the whole pipeline twice on one scene; the second run must run no stage."""
     from pipeline.engine import Engine
     from pipeline.registry import build_registry
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
 
     with tempfile.TemporaryDirectory(prefix="pano-bench-") as tmp:
         if scene is None:

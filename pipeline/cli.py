@@ -12,6 +12,12 @@ import os
 # than 1 on a shared 2-core machine (docs/training.md); must be set before torch loads.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+from pipeline import signals  # noqa: E402
+
+# pycolmap takes SIGTERM when imported (glog); imported now, before torch and OpenCV start threads,
+# a signal meanwhile waits for our handler (pipeline/signals.py)
+signals.load_native_early()
+
 import json  # noqa: E402
 import shutil
 import sys
@@ -25,9 +31,9 @@ from rich.text import Text
 from rich.markup import escape
 
 from pipeline.console import console, err_console
-from pipeline.errors import PanoError, did_you_mean
-from pipeline.fsutil import LOCK_NAME, run_folder_lock
-from pipeline.paths import check_run_folder, default_run_folder, is_run_folder
+from runfs.errors import PanoError, did_you_mean
+from runfs.fsutil import LOCK_NAME, run_folder_lock
+from runfs.paths import check_run_folder, default_run_folder, is_run_folder
 from schemas.scene import REAL_CAPTURE_NADIR_DEG
 
 app = typer.Typer(
@@ -84,6 +90,10 @@ def _main(
     ] = None,
 ) -> None:
     _state["debug"] = debug
+    if debug:  # main() keeps library warnings off stderr; --debug shows them
+        import warnings
+
+        warnings.simplefilter("default")
     if max_megapixels is not None:
         os.environ["PANO_PIPE_MAX_MEGAPIXELS"] = repr(max_megapixels)
 
@@ -149,11 +159,11 @@ def _override_value(stage: str, param: str, text: str):
 def make_engine(scene_dir: Path, out: Path | None, config_file: Path | None, overrides: list[str] | None):
     from pipeline.engine import Engine
     from pipeline.registry import build_registry
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
 
     scene = load_scene(scene_dir)
     config, source = load_config(config_file, overrides)
-    out_dir = out if out is not None else default_run_folder(scene.name)
+    out_dir = out if out is not None else default_run_folder(scene.name, scene.root)
     return Engine(scene, out_dir, build_registry(), config, config_source=source)
 
 
@@ -196,6 +206,8 @@ def run(
         "--address", help="Ray cluster address (default: start a local Ray instance).")] = None,
     retries: Annotated[int, typer.Option(
         "--retries", min=0, help="Ray: times a stage whose worker died is retried.")] = 2,
+    connect_timeout: Annotated[float, typer.Option(
+        "--connect-timeout", min=0.1, help="Ray: seconds to wait for the cluster at --address.")] = 30.0,
 ) -> None:
     """Run the pipeline (`all`) or one stage (rerun, with anything stale upstream), on one scene
     or a batch of scenes (exit code 1 when any scene failed)."""
@@ -203,7 +215,7 @@ def run(
 
     if is_batch(scenes) or executor != "local" or address is not None:
         return _run_batch(stage, expand_scenes(scenes), out, config, set_, force, until, resume, executor,
-                          address, retries, force_upstream)
+                          address, retries, force_upstream, connect_timeout)
     scene = scenes[0]
     engine = make_engine(scene, out, config, set_)
     target = None if stage == "all" else stage
@@ -277,7 +289,7 @@ def print_run_summary(engine, scene_arg: Path, finished: list[str]) -> None:
 
 def _run_batch(stage: str, scenes: list[Path], out: Path | None, config: Path | None, set_: list[str] | None,
                force: bool, until: str | None, resume: bool, executor_name: str, address: str | None,
-               retries: int, force_upstream: bool) -> int:
+               retries: int, force_upstream: bool, connect_timeout: float = 30.0) -> int:
     from batch.executors import make_executor
     from batch.progress import console as batch_console
     from batch.progress import summary_table
@@ -285,7 +297,7 @@ def _run_batch(stage: str, scenes: list[Path], out: Path | None, config: Path | 
 
     cfg, source = load_config(config, set_)
     target = None if stage == "all" else stage
-    executor = make_executor(executor_name, address=address, retries=retries)
+    executor = make_executor(executor_name, address=address, retries=retries, connect_timeout=connect_timeout)
     try:
         results = run_batch(scenes, out if out is not None else Path("runs"), cfg, source, executor,
                             target=target, until=until, force=force, resume=resume,
@@ -364,14 +376,16 @@ def status(scene: SceneArg, out: OutOpt = None, config: ConfigOpt = None, set_: 
 @app.command()
 def clean(scene: SceneArg, out: OutOpt = None) -> None:
     """Delete the scene's run folder."""
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
 
     s = load_scene(scene, check_images=False)
-    out_dir = out if out is not None else default_run_folder(s.name)
+    out_dir = out if out is not None else default_run_folder(s.name, s.root)
     if not out_dir.exists():
         console.print(f"nothing to clean: {escape(str(out_dir))} does not exist", soft_wrap=True)
         return
-    check_run_folder(out_dir, s.root)
+    if out_dir.is_symlink():  # deleting through it would empty the target and leave the link
+        raise PanoError(out_dir, f"is a symbolic link (to {os.readlink(out_dir)}); name the run folder itself")
+    check_run_folder(out_dir, s.root, links_ok=True)
     if not is_run_folder(out_dir):  # an empty folder: nothing of ours to delete
         console.print(f"nothing to clean: {escape(str(out_dir))} holds no pano-pipe run", soft_wrap=True)
         return
@@ -612,12 +626,19 @@ def _register_commands() -> None:
 _register_commands()
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, handled like Ctrl-C: stages clean up, training checkpoints, exit code 130."""
+INTERRUPTED = "interrupted: finished results are kept; the unfinished one left nothing behind"
 
 
-def _on_sigterm(signum, frame) -> None:
-    raise Terminated()
+def _interrupted_inside(e: BaseException) -> bool:
+    """Whether a KeyboardInterrupt (Ctrl-C, SIGTERM) caused `e`: pybind11 turns one raised while a
+    native module initialises into ImportError('initialization failed')."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
 
 
 def _one_line(text: str) -> str:
@@ -653,6 +674,15 @@ def _quiet_opencv() -> None:
     if "cv2" in sys.modules:
         cv2 = sys.modules["cv2"]
         cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+
+
+def _quiet_warnings() -> None:
+    """Library warnings (numpy's RuntimeWarnings on overflow or NaN, deprecations) are not for the
+    user of a command: stderr holds the error line only, and pano-pipe reports what matters itself
+    (ctx.warn, on stdout). --debug shows them."""
+    import warnings
+
+    warnings.simplefilter("ignore")
 
 
 def _show_flags_as_flags(command) -> None:
@@ -708,12 +738,9 @@ def _usage_message(e) -> str:
 def main() -> None:
     """Console entry point. Exit codes: 0 success, 1 internal error, 2 bad input (one line naming
     the file and the problem), 130 interrupted (Ctrl-C or SIGTERM). --debug shows tracebacks."""
-    import signal
-    import threading
-
     _quiet_opencv()
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, _on_sigterm)
+    _quiet_warnings()
+    signals.install()  # SIGTERM like Ctrl-C, kept across native imports (pycolmap takes it)
     try:
         command = typer.main.get_command(app)
         _show_flags_as_flags(command)
@@ -732,7 +759,7 @@ def main() -> None:
     except _click_exceptions("Exit") as e:
         sys.exit(e.exit_code)
     except (KeyboardInterrupt, *_click_exceptions("Abort")):
-        err_console.print("interrupted: finished stages are kept, the running one left its old result")
+        err_console.print(INTERRUPTED)
         sys.exit(130)
     except _click_exceptions("ClickException") as e:  # usage errors: one line, bad input
         _fail(_usage_message(e), 2)
@@ -746,6 +773,9 @@ def main() -> None:
             raise
         _fail("input nested too deeply (rerun with --debug for the traceback)", 2)
     except Exception as e:  # unexpected failures: a bug of ours
+        if _interrupted_inside(e):  # Ctrl-C / SIGTERM inside a native import or a library that wraps it
+            err_console.print(INTERRUPTED)
+            sys.exit(130)
         if _state["debug"]:
             raise
         _fail(f"{type(e).__name__}: {e} (an internal error; rerun with --debug for the traceback)", 1)

@@ -23,9 +23,9 @@ from pydantic import BaseModel, ValidationError
 from rich.markup import escape
 
 from pipeline.console import console, track
-from pipeline.errors import PanoError, describe_validation_error, did_you_mean
-from pipeline.fsutil import append_line, atomic_folder, remove_stale_temporaries, run_folder_lock, sha256_file, sha256_json
-from pipeline.paths import check_run_folder, mark_run_folder
+from runfs.errors import PanoError, describe_validation_error, did_you_mean
+from runfs.fsutil import append_line, atomic_folder, remove_stale_temporaries, run_folder_lock, sha256_file, sha256_json
+from runfs.paths import check_run_folder, mark_run_folder, run_path
 from pipeline.stage import Loaded, StageContext, StageSpec
 from schemas.artifact import Artifact, ArtifactMeta
 from schemas.scene import Scene
@@ -403,9 +403,9 @@ class Engine:
         console.print(f"[bold cyan]▶ {p.name}[/] {escape(spec.description)}")
         self._log(p.name, "start", host=socket.gethostname(), pid=os.getpid())  # which worker, in a batch
         t0 = time.perf_counter()
-        scratch = self.out_dir / ".scratch" / p.name
+        scratch = run_path(self.out_dir, f".scratch/{p.name}")
         try:
-            with atomic_folder(self.out_dir / p.name) as tmp:
+            with atomic_folder(run_path(self.out_dir, p.name)) as tmp:
                 ctx = StageContext(
                     scene=scene,
                     params=p.params,

@@ -9,7 +9,7 @@ Depth files are kept as metres along the ray. COLMAP models with EQUIRECTANGULAR
 (`import_colmap`) are made upright and metric with sfm.frame, as the poses stage does; the
 scale rules of both importers are in docs/poses.md ("Importers").
 
-The import follows the path rules of `pipeline.paths` (docs/security.md):
+The import follows the path rules of `runfs.paths` (docs/security.md):
 
 - Every frame's `file_path` must resolve inside the folder holding
   transforms.json, after symlinks; an absolute path, '..' or a symlink leading
@@ -19,7 +19,7 @@ The import follows the path rules of `pipeline.paths` (docs/security.md):
   only at the end: a failure leaves no OUT (or the empty OUT there was).
   OUT must be new or an empty folder, and may not overlap the source folder.
 - A view's name is its image's file stem, made into a safe stem
-  (`pipeline.paths.safe_stem`) where it is not one: characters a file name may
+  (`runfs.paths.safe_stem`) where it is not one: characters a file name may
   not hold become '_', leading dots, dashes and spaces are dropped, and long
   stems are cut. Names that then collide (`a/frame.png` and `b/frame.png`,
   `frame.png` and `frame.jpg`, or names differing only in case) are made unique
@@ -43,9 +43,10 @@ import cv2
 import numpy as np
 from pydantic import ValidationError
 
-from pipeline.errors import PanoError, describe_validation_error, read_json
-from pipeline.fsutil import atomic_folder
-from pipeline.paths import (
+from runfs.errors import PanoError, describe_validation_error, read_json
+from runfs.fsutil import atomic_folder
+from runfs.limits import check_colmap_binary, load_npy, read_image
+from runfs.paths import (
     MAX_STEM_BYTES,
     is_inside,
     overlap_problem,
@@ -191,7 +192,7 @@ def _check_out(out: Path, sources: dict[str, Path]) -> None:
         if problem:
             raise PanoError(out, f"output folder {problem} the source folder {base} (holding {what}); "
                                  "choose an OUT outside it")
-    if overlap_problem(out, Path.cwd()) in ("is the same folder", "contains"):
+    if overlap_problem(out, Path.cwd()) in ("is", "contains"):
         raise PanoError(out, "output folder is (or contains) the working folder; "
                              "choose a new or empty folder")
     if out.exists() or out.is_symlink():
@@ -237,7 +238,7 @@ def _measured_heights(heights: np.ndarray) -> list[float | None]:
 
 def _write_scene(out: Path, manifest: SceneManifest, copies: list[tuple[Path, str]],
                  arrays: dict[str, np.ndarray], extra: Callable[[Path], None] | None = None) -> None:
-    """The scene folder at `out`, written whole or not at all (pipeline.fsutil.atomic_folder):
+    """The scene folder at `out`, written whole or not at all (runfs.fsutil.atomic_folder):
     `copies` are (source file, path in the scene), `arrays` .npy files by path in the scene,
     `extra` writes anything else into the temporary folder."""
     try:
@@ -381,9 +382,9 @@ def _nerfstudio_depth(path: Path, unit: float, field: str) -> np.ndarray:
     along the ray, as ours is: only the unit changes."""
     try:
         if path.suffix.lower() == ".npy":
-            raw = np.load(path, allow_pickle=False)
+            raw = load_npy(path, pixels=True)
         else:
-            raw = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH)
+            raw = read_image(path, cv2.IMREAD_ANYDEPTH, what=f"depth map (named by {field})")
             if raw is None:
                 raise PanoError(path, f"unreadable depth image (named by {field})")
     except (OSError, ValueError) as e:
@@ -551,12 +552,17 @@ def _read_colmap(model_dir: Path):
     """The pycolmap.Reconstruction in `model_dir` (binary or text), or a one-line PanoError."""
     import pycolmap
 
+    from sfm.reconstruct import quiet_colmap
+
+    quiet_colmap()  # its own log of a corrupt file would precede our one line
     if not model_dir.is_dir():
         raise PanoError(model_dir, "COLMAP model folder does not exist" if not model_dir.exists() else
                                    "not a folder; give the folder holding cameras/images/points3D .bin or .txt")
     for stem in _MODEL_FILES:
         if not any((model_dir / f"{stem}{ext}").is_file() for ext in (".bin", ".txt")):
             raise PanoError(model_dir / f"{stem}.bin", "missing (neither .bin nor .txt): not a COLMAP sparse model")
+    if any((model_dir / f"{stem}.bin").is_file() for stem in _MODEL_FILES):
+        check_colmap_binary(model_dir)  # pycolmap allocates what the counts claim before reading
     try:
         return pycolmap.Reconstruction(model_dir)
     except Exception as e:  # pycolmap raises bare RuntimeErrors / ValueErrors on corrupt files

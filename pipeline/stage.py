@@ -94,7 +94,10 @@ class Loaded(Generic[D]):
     dir: Path
 
     def path(self, rel: str) -> Path:
-        return self.dir / rel
+        """A file the artifact names: relative, inside the stage's folder, no link on the way."""
+        from runfs.paths import run_path
+
+        return run_path(self.dir, rel, named_by=f"{self.dir.name}/artifact.json")
 
 
 @dataclass

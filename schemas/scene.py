@@ -8,7 +8,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from pipeline.paths import safe_relative, safe_stem, scene_file
+from runfs.paths import safe_relative, safe_stem, scene_file
 
 Matrix4 = list[list[float]]
 
@@ -167,7 +167,7 @@ class Scene(BaseModel):
     def views(self) -> list[View]:
         return self.manifest.views
 
-    # Every path below goes through pipeline.paths.scene_file: it refuses what resolves
+    # Every path below goes through runfs.paths.scene_file: it refuses what resolves
     # outside the scene folder ('..', absolute paths, symlinks pointing out).
     def path(self, rel: str, named_by: str | None = None) -> Path:
         return scene_file(self.root, rel, named_by)

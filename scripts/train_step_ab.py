@@ -19,7 +19,7 @@ import gaussians.optim as Onew
 import gaussians.trainer as T
 from pipeline.engine import Engine
 from pipeline.registry import build_registry
-from pipeline.scene_loader import load_scene
+from schemas.scene_loader import load_scene
 
 
 def load(name, path):

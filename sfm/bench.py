@@ -15,7 +15,7 @@ import numpy as np
 from rich.markup import escape
 
 from pipeline.console import console
-from pipeline.fsutil import atomic_write_text
+from runfs.fsutil import atomic_write_text
 from sfm.frame import pose_errors
 from sfm.reconstruct import METHODS
 
@@ -43,7 +43,7 @@ def bench_poses(views: list[int], height: int, seed: int, threads: int | None, o
     import simulate
     from pipeline.engine import Engine
     from pipeline.registry import build_registry
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
 
     rows = []
     with tempfile.TemporaryDirectory(prefix="pano-bench-poses-") as tmp:

@@ -188,6 +188,10 @@ def align_to_known(cam_to_world: dict[str, np.ndarray], known: dict[str, np.ndar
     uncertainty, floor, source = 0.0, None, "known poses"
     if len(names) >= 2 and np.linalg.norm(src_c) > 0 and np.linalg.norm(dst_c) > 0:
         scale = float(np.sum(src_c * dst_c) / np.sum(src_c * src_c))
+        if not scale > 0:  # the given positions are the recovered ones mirrored: no rigid world fits
+            raise ValueError(f"the given poses contradict structure from motion: their positions fit the "
+                             f"recovered ones only mirrored (scale {scale:.3g}); check the poses of "
+                             f"{', '.join(names[:4])}")
         residual = dst_c - scale * src_c
         uncertainty = float(np.sqrt(np.sum(residual ** 2) / max(len(names) - 1, 1)) / np.linalg.norm(dst_c))
     else:  # one known view: its pose fixes rotation and position, the floor the scale

@@ -11,7 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.fsutil import atomic_folder  # a leaf module: no pipeline machinery comes along
+from runfs.fsutil import atomic_folder  # a leaf module: no pipeline machinery comes along
 from schemas.scene import SceneManifest, View
 from simulate import effects as fxmod
 from simulate.geometry import PRESET_NAMES, Box, Camera, World, build_world, place_cameras

@@ -32,8 +32,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from panogeom.equirect import angles_to_dirs, column_longitudes, row_latitudes
 from panogeom.surfaces import CEILING, FLOOR, NONE, SURFACE_NAMES, WALL
-from pipeline.errors import PanoError
-from pipeline.scene_loader import valid_mask
+from runfs.errors import PanoError
+from runfs.limits import load_npy
+from schemas.scene_loader import valid_mask
 from pipeline.stage import StageContext
 from schemas.align import AlignOutput, KindFit
 from schemas.depth import DEPTH_MODELS
@@ -466,7 +467,7 @@ def run(ctx: StageContext[Params]) -> AlignOutput:
     views: list[_ViewData] = []
     for vd in depth_in.data.views:
         path = depth_in.path(vd.depth)
-        values = np.load(path).astype(np.float32, copy=False)
+        values = load_npy(path, pixels=True).astype(np.float32, copy=False)
         if values.ndim != 2:
             raise PanoError(path, f"expected an [H,W] depth map, got shape {list(values.shape)}")
         view = ctx.scene.manifest.view(vd.view)

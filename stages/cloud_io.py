@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 from schemas.cloud import CloudFiles
 
 NPZ_NAME = "cloud.npz"

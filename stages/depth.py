@@ -24,11 +24,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from pipeline.errors import PanoError, load_npy
+from runfs.errors import PanoError
+from runfs.limits import load_npy, read_image
 from pipeline.stage import StageContext
 from schemas.depth import DepthOutput, ViewDepth
 from schemas.scene import Scene, View
@@ -179,7 +179,7 @@ def read_depth_file(path: str | Path) -> np.ndarray:
     """A supplied depth map in metres along the ray, float32 [H,W]; NaN where the file says invalid."""
     path = Path(path)
     if path.suffix.lower() == ".png":
-        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        raw = read_image(path, what="depth map")
         if raw is None:
             raise PanoError(path, "unreadable depth PNG")
         if raw.dtype != np.uint16 or raw.ndim != 2:
@@ -190,7 +190,7 @@ def read_depth_file(path: str | Path) -> np.ndarray:
         depth = raw.astype(np.float32) / 1000.0
         depth[raw == 0] = np.nan
     elif path.suffix.lower() == ".npy":
-        depth = load_npy(path)
+        depth = load_npy(path, pixels=True)
         if depth.ndim == 3 and depth.shape[-1] == 1:
             depth = depth[..., 0]
         if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.number):

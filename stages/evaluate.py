@@ -26,8 +26,9 @@ from evaluation import metrics as M
 from evaluation.model_io import equirect_camera, load_model, render_pose
 from evaluation.visuals import depth_rgb, error_rgb
 from panogeom.images import read_rgb, write_rgb
-from pipeline.errors import PanoError, load_npy
-from pipeline.scene_loader import valid_mask
+from runfs.errors import PanoError
+from runfs.limits import load_npy, read_image
+from schemas.scene_loader import valid_mask
 from pipeline.stage import StageContext
 from schemas.evaluate import EvaluateOutput, ViewMetrics
 from schemas.scene import Scene, View
@@ -150,12 +151,12 @@ def load_gt_depth(path: Path, size: tuple[int, int]) -> np.ndarray:
     """Ground-truth distance along the ray (.npy metres, or .png uint16 mm) at (H, W); nearest
     resampling so depth edges are not blended into values no surface has."""
     if path.suffix == ".npy":
-        d = load_npy(path)
+        d = load_npy(path, pixels=True)
         if not np.issubdtype(d.dtype, np.number):
             raise PanoError(path, f"ground-truth depth must be numeric, got {d.dtype}")
         d = d.astype(np.float32)
     else:
-        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        raw = read_image(path, what="depth map")
         if raw is None:
             raise PanoError(path, "unreadable depth image")
         d = raw.astype(np.float32) / 1000.0
@@ -242,7 +243,7 @@ def run(ctx: StageContext) -> EvaluateOutput:
         backend = p.backend or "?"
         for v in ctx.track(views, "evaluate: views", total=len(views)):
             img_path = ctx.scene.image_path(v)
-            native = cv2.imread(str(img_path), cv2.IMREAD_UNCHANGED)
+            native = read_image(img_path)
             if native is None:
                 raise PanoError(img_path, "unreadable image")
             size = eval_size(p, tdata.resolution, native.shape[:2])

@@ -27,7 +27,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from layoutnet import postprocess as pp
 from layoutnet.alignment import Alignment
 from layoutnet.formats import SuppliedLayout, read_layout
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
+from runfs.limits import read_image
 from pipeline.stage import StageContext
 from schemas.layout import LayoutAlignment, LayoutOutput, ViewLayout
 from schemas.scene import Scene, View
@@ -148,7 +149,7 @@ def selected_views(scene: Scene, params: Params) -> list[View]:
 
 
 def _image_size(path: Path) -> tuple[int, int]:
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img = read_image(path)
     if img is None:
         raise PanoError(path, "unreadable image")
     return img.shape[0], img.shape[1]

@@ -21,8 +21,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from panogeom.images import read_rgb
 from pipeline.console import make_progress
-from pipeline.errors import PanoError
-from pipeline.scene_loader import image_size, valid_mask
+from runfs.errors import PanoError
+from runfs.limits import image_size
+from schemas.scene_loader import valid_mask
 from pipeline.stage import Loaded, StageContext
 from schemas.poses import PosesOutput, UprightPairReport, ViewPose
 from schemas.scene import Scene

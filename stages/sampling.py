@@ -23,7 +23,7 @@ from shapely.geometry.polygon import orient
 from panogeom.equirect import angles_to_pixel, dirs_to_angles
 from panogeom.images import read_rgb
 from panogeom.surfaces import CEILING, FLOOR, SURFACE_NAMES, WALL
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 from pipeline.stage import StageContext
 from schemas.sampling import SamplingOutput
 from schemas.scene import Scene

@@ -29,8 +29,8 @@ from gaussians.ply import save_ply
 from gaussians.trainer import CHECKPOINT_NAME, Trainer, TrainConfig, TrainView, scene_extent
 from panogeom.equirect import angles_to_pixel, dirs_to_angles
 from panogeom.images import read_rgb
-from pipeline.errors import PanoError
-from pipeline.scene_loader import valid_mask
+from runfs.errors import PanoError
+from schemas.scene_loader import valid_mask
 from pipeline.stage import StageContext
 from schemas.scene import Scene, View
 from schemas.train import CropRig, TrainOutput
@@ -350,7 +350,7 @@ def initial_gaussians(ctx: StageContext, p: Params, views: list[View]) -> tuple[
 def load_images(scene: Scene, views: list[View], height: int, warn=None) -> dict[str, np.ndarray]:
     """The training images at height x 2*height; `warn` is told which were smaller (upsampled:
     the model then learns interpolated detail)."""
-    from pipeline.scene_loader import image_size
+    from runfs.limits import image_size
 
     out, small = {}, []
     for v in views:

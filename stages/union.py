@@ -21,7 +21,7 @@ from shapely.geometry import GeometryCollection, MultiPolygon, Point, Polygon
 from shapely.geometry.polygon import orient
 from shapely.ops import unary_union
 
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 from pipeline.stage import StageContext
 from schemas.layout import LayoutOutput, ViewLayout
 from schemas.scene import Scene

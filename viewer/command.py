@@ -10,6 +10,7 @@ import typer
 from rich.markup import escape
 
 from pipeline.console import console
+from pipeline.signals import Terminated
 
 # Same option shapes as pipeline/cli.py (redeclared: cli imports this module).
 SceneArg = Annotated[Path, typer.Argument(
@@ -37,7 +38,9 @@ def view_command(
     try:
         while True:
             time.sleep(3600)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:  # Ctrl-C is how a viewer stops (exit 0); SIGTERM exits 130, as everywhere
         console.print("viewer stopped")
+        if isinstance(e, Terminated):
+            raise
     finally:
         handle.stop()

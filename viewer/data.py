@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import PanoError
-from pipeline.paths import RUN_MARKER, default_run_folder, is_run_folder
+from runfs.errors import PanoError
+from runfs.paths import RUN_MARKER, default_run_folder, is_run_folder, open_run_folder
 
 SH_C0 = 0.28209479177387814
 MODEL_PATH = Path("train") / "point_cloud.ply"
@@ -30,12 +30,12 @@ class Target:
 def resolve_target(path: Path, out: Path | None = None) -> Target:
     """SCENE (a folder holding scene.json; run folder `out` or runs/<scene-name>/, as `pano-pipe run`)
     or a run folder directly (its scene is the one its marker names, when that still loads)."""
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
 
     path = Path(path)
     if (path / "scene.json").is_file():
         scene = load_scene(path, check_images=False)
-        run_dir = Path(out) if out is not None else default_run_folder(scene.name)
+        run_dir = Path(out) if out is not None else default_run_folder(scene.name, scene.root)
     elif path.is_dir() and is_run_folder(path):
         if out is not None and Path(out).resolve() != path.resolve():
             raise PanoError(out, f"--out given with a run folder ({path}); give one or the other")
@@ -49,6 +49,7 @@ def resolve_target(path: Path, out: Path | None = None) -> Target:
         raise PanoError(path, "neither a scene folder (no scene.json) nor a pano-pipe run folder")
     if not run_dir.is_dir():
         raise PanoError(run_dir, f"no run folder; run `pano-pipe run all {path}` first")
+    open_run_folder(run_dir)  # no symbolic link inside: the viewer reads the model and writes view/
     if not (run_dir / MODEL_PATH).is_file():
         raise PanoError(run_dir / MODEL_PATH, f"no trained model; run `pano-pipe run all {path}` first")
     if scene is not None:  # poses the run recovered (the poses stage) fill in what scene.json leaves out

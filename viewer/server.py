@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from runfs.paths import run_path
 from viewer.data import (
     MODEL_PATH,
     CameraView,
@@ -28,11 +29,116 @@ from viewer.data import (
     splats_from_model,
 )
 
+#: The panorama-height slider's range and step: the server clamps what a client sends to it
+#: (a client can send any value, and any slider min/max, over the websocket).
+PANO_HEIGHT_MIN, PANO_HEIGHT_MAX, PANO_HEIGHT_STEP = 64, 2048, 64
+#: Host names that reach this machine only: a viewer listening on a loopback address accepts a
+#: browser's websocket only from a page served under one of these (no DNS rebinding).
+LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1", "[::1]")
+#: The close code of a websocket refused for its Origin (RFC 6455: policy violation).
+POLICY_VIOLATION = 1008
+
 #: Colours of the camera frustums (RGB).
 TRAIN_COLOUR = (30, 110, 230)
 TEST_COLOUR = (230, 120, 20)
 PLAN_COLOUR = (220, 30, 30)
 VIEW_FOLDER = "view"
+
+
+def clamp_pano_height(value, default: int = 512) -> int:
+    """A panorama height a client asked for, on the slider's grid and inside its range."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        v = float("nan")
+    if not np.isfinite(v):
+        v = default
+    v = round(v / PANO_HEIGHT_STEP) * PANO_HEIGHT_STEP
+    return int(min(max(v, PANO_HEIGHT_MIN), PANO_HEIGHT_MAX))
+
+
+def origin_problem(origin: str | None, host_header: str | None, listen_host: str) -> str | None:
+    """Why a websocket handshake's Origin is refused, or None.
+
+    A browser sends the Origin of the page that opens the socket; any page the user visits may
+    try ws://127.0.0.1:8080. Accepted: no Origin (not a browser: a script could send any), or an
+    Origin whose host:port is the Host the request was sent to (the page the viewer served); when
+    listening on a loopback address, that host must also be a loopback name (a rebound DNS name
+    such as evil.example resolving to 127.0.0.1 is refused)."""
+    from urllib.parse import urlsplit
+
+    if origin is None:
+        return None
+    try:
+        parts = urlsplit(origin)
+        netloc, hostname = parts.netloc.lower(), (parts.hostname or "").lower()
+    except ValueError:
+        return f"malformed Origin {origin[:80]!r}"
+    if parts.scheme not in ("http", "https") or not netloc:
+        return f"Origin {origin[:80]!r} is not a web page"
+    if netloc != (host_header or "").lower():
+        return f"Origin {origin[:80]!r} is not the viewer's page ({host_header})"
+    if _is_loopback(listen_host) and hostname not in LOOPBACK_NAMES and not hostname.startswith("127."):
+        return f"Origin {origin[:80]!r}: a loopback viewer serves only localhost pages"
+    return None
+
+
+def _is_loopback(host: str) -> bool:
+    return host in ("localhost", "::1") or host.startswith("127.")
+
+
+class RenderQueue:
+    """One render at a time, at most one waiting: a request made while one runs waits, and
+    replaces the one already waiting (repeated clicks render the last viewpoint once)."""
+
+    def __init__(self, render):
+        self._render = render
+        self._lock = threading.Lock()
+        self._busy = False
+        self._waiting = None
+
+    def submit(self, request) -> str:
+        """Run `render(request)` now ("ran"), or leave it for the running caller ("queued")."""
+        with self._lock:
+            if self._busy:
+                self._waiting = request
+                return "queued"
+            self._busy = True
+        while request is not None:
+            try:
+                self._render(request)
+            finally:
+                with self._lock:
+                    request, self._waiting = self._waiting, None
+                    if request is None:
+                        self._busy = False
+        return "ran"
+
+
+def _guard_origin(server, listen_host: str) -> None:
+    """Close, before anything is exchanged, every websocket whose Origin `origin_problem` refuses,
+    and drop any message such a client managed to send first."""
+    ws = server._websock_server  # viser exposes no handshake hook; its connections live here
+    refused: set[int] = set()
+
+    async def check(conn) -> None:
+        connection = ws._live_connections.get(conn.client_id)
+        if connection is None:
+            return
+        headers = connection.request.headers
+        problem = origin_problem(headers.get("Origin"), headers.get("Host"), listen_host)
+        if problem is not None:
+            refused.add(conn.client_id)
+            await connection.close(POLICY_VIOLATION, "origin refused")
+
+    handle_incoming = ws._handle_incoming_message
+
+    async def guarded(client_id, message) -> None:
+        if client_id not in refused:
+            await handle_incoming(client_id, message)
+
+    ws._client_connect_cb.insert(0, check)  # before viser's own: nothing is set up for it
+    ws._handle_incoming_message = guarded
 
 
 def _wxyz(rot: np.ndarray) -> np.ndarray:
@@ -102,11 +208,14 @@ class ViewerHandle:
         from evaluation.model_io import equirect_camera, render_pose
         from panogeom.images import write_rgb
 
-        height = max(2, int(height))
-        pose = level_pose(c2w) if level else np.asarray(c2w, dtype=np.float64)
+        height = clamp_pano_height(height)
+        c2w = np.asarray(c2w, dtype=np.float64)
+        if c2w.shape != (4, 4) or not np.isfinite(c2w).all():
+            raise ValueError("the camera pose is not a finite 4x4 matrix")
+        pose = level_pose(c2w) if level else c2w
         with self._lock:
             out = render_pose(self.model, pose, equirect_camera(height, 2 * height))
-            folder = self.run_dir / VIEW_FOLDER
+            folder = run_path(self.run_dir, VIEW_FOLDER)  # a link planted meanwhile is refused
             folder.mkdir(parents=True, exist_ok=True)
             n = 1 + max([int(p.stem.split("_")[-1]) for p in folder.glob("panorama_[0-9][0-9][0-9][0-9].png")]
                         or [0])
@@ -151,6 +260,7 @@ def start_viewer(target: Target, host: str = "127.0.0.1", port: int = 8080, pano
     cameras = scene_cameras(target.scene)
 
     server = viser.ViserServer(host=host, port=port, verbose=False)
+    _guard_origin(server, host)
     server.gui.configure_theme(control_width="medium")
     server.scene.set_up_direction("-y")  # the world is y down: no data are rotated
     h = ViewerHandle(server=server, run_dir=run_dir, url=f"http://{_url_host(host)}:{server.get_port()}",
@@ -209,8 +319,8 @@ def start_viewer(target: Target, host: str = "127.0.0.1", port: int = 8080, pano
                 btn = server.gui.add_button(f"{cam.name} ({cam.split})")
                 btn.on_click(_flyer(h, cam))
     with server.gui.add_folder("Panorama"):
-        h.pano_height = server.gui.add_slider("height (px)", min=64, max=2048, step=64,
-                                              initial_value=int(np.clip(pano_height, 64, 2048)))
+        h.pano_height = server.gui.add_slider("height (px)", min=PANO_HEIGHT_MIN, max=PANO_HEIGHT_MAX,
+                                              step=PANO_HEIGHT_STEP, initial_value=clamp_pano_height(pano_height))
         h.render_button = server.gui.add_button("Render 360° panorama here")
         status = server.gui.add_markdown("Renders the current viewpoint (levelled) and saves it to "
                                          f"`{shown_path(run_dir / VIEW_FOLDER)}/`.")
@@ -248,22 +358,40 @@ def _toggler(h: ViewerHandle, name: str, box):
 
 
 def _renderer(h: ViewerHandle, status):
-    def callback(event) -> None:
-        client = event.client
-        if client is None:
-            return
-        c2w = np.eye(4)
-        c2w[:3, :3] = __import__("viser").transforms.SO3(np.asarray(client.camera.wxyz)).as_matrix()
-        c2w[:3, 3] = client.camera.position
+    """The render button's callback: the client's viewpoint and the slider's height, both checked
+    on the server (a client sends what it likes), rendered through one RenderQueue."""
+
+    def render(request) -> None:
+        c2w, height = request
         h.render_button.disabled = True
         status.content = "Rendering…"
         try:
-            pano = h.render_panorama(c2w, int(h.pano_height.value))
+            pano = h.render_panorama(c2w, height)
             status.content = (f"Saved `{shown_path(pano.path)}` "
                               f"({pano.image.shape[1]}×{pano.image.shape[0]}, {pano.seconds:.2f} s).")
         except Exception as exc:  # a failed render must not kill the server
             status.content = f"Render failed: {type(exc).__name__}: {exc}"
         finally:
             h.render_button.disabled = False
+
+    queue = RenderQueue(render)
+
+    def callback(event) -> None:
+        client = event.client
+        if client is None:
+            return
+        import viser.transforms as tf
+
+        wxyz = np.asarray(client.camera.wxyz, dtype=np.float64)
+        position = np.asarray(client.camera.position, dtype=np.float64)
+        if wxyz.shape != (4,) or position.shape != (3,) or not (np.isfinite(wxyz).all() and np.isfinite(position).all()) \
+                or np.linalg.norm(wxyz) < 1e-9:
+            status.content = "Render refused: the browser sent no valid camera pose."
+            return
+        c2w = np.eye(4)
+        c2w[:3, :3] = tf.SO3(wxyz / np.linalg.norm(wxyz)).as_matrix()
+        c2w[:3, 3] = position
+        if queue.submit((c2w, clamp_pano_height(h.pano_height.value))) == "queued":
+            status.content = "Rendering… (one more render queued)"
 
     return callback

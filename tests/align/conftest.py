@@ -15,7 +15,7 @@ import pytest
 import shapely
 from shapely.geometry import Point, Polygon
 
-from pipeline.scene_loader import load_scene
+from schemas.scene_loader import load_scene
 from pipeline.stage import Loaded, StageContext
 from schemas.depth import DepthOutput, ViewDepth
 from schemas.layout import LayoutOutput, ViewLayout

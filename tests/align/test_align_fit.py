@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from panogeom.equirect import ray_directions
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 from stages.align import (
     CEILING,
     FLOOR,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 from stages.cloud_io import read_cloud
 
 H = 64
@@ -143,7 +143,7 @@ def test_registry_pipeline_up_to_align_with_scaled_files(tmp_path):
 
     from pipeline.engine import Engine
     from pipeline.registry import build_registry
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
     from simulate import generate_scene
 
     res = generate_scene(

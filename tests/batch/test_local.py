@@ -122,8 +122,8 @@ def test_ctrl_c_stops_the_batch_and_a_rerun_continues(scenes, tmp_path, capsys, 
 
 
 def test_a_batch_refuses_a_run_folder_in_use(scenes, tmp_path):
-    from pipeline.fsutil import run_folder_lock
-    from pipeline.paths import mark_run_folder
+    from runfs.fsutil import run_folder_lock
+    from runfs.paths import mark_run_folder
 
     mark_run_folder(tmp_path / "runs" / "room0", scenes / "room0")
     with run_folder_lock(tmp_path / "runs" / "room0"):

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from batch.scenes import expand_scenes, is_batch, run_folders
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 
 def make(root: Path, *names: str) -> list[Path]:

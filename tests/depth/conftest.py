@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.scene_loader import load_scene
+from schemas.scene_loader import load_scene
 from pipeline.stage import StageContext
 from simulate import generate_scene
 

@@ -25,7 +25,7 @@ from depthnet.depth_anything import (
     normalize,
     onnx_vs_torch,
 )
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 
 def official_vits_shapes() -> dict[str, tuple[int, ...]]:

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 from stages import depth as depth_stage
 
 
@@ -73,7 +73,7 @@ def test_wrong_size_file_in_a_scene_fails_the_stage(dk, scene, tmp_path):
 
     bad = tmp_path / "bad"
     shutil.copytree(scene.root, bad)
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
 
     s2 = load_scene(bad)
     v = s2.manifest.train_views()[0]

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 from stages.align import fit_scale, layout_depth_map, values_to_depth
 
 H = 64

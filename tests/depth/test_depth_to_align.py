@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 from stages.cloud_io import read_cloud
 
 

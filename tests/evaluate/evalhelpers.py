@@ -19,7 +19,7 @@ def make_scene(root: Path, views: int = 2, test_views: int = 1, height: int = 32
 
     simulate.generate_scene(root, preset=preset, views=views, test_views=test_views, height=height, seed=0,
                             effects="none")
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
 
     return load_scene(root)
 
@@ -61,7 +61,7 @@ def write_train_artifact(run_dir: Path, g, resolution=(32, 64), log_records=None
     from schemas.artifact import Artifact, ArtifactMeta
     from schemas.train import TrainOutput
 
-    from pipeline.paths import RUN_MARKER
+    from runfs.paths import RUN_MARKER
 
     d = run_dir / "train"
     d.mkdir(parents=True, exist_ok=True)

@@ -10,7 +10,7 @@ import pytest
 from pydantic import BaseModel
 
 from evaluation import experiments as E
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 
 class _FakeTrainParams(BaseModel):
@@ -138,7 +138,7 @@ TINY = {"sampling": {"density": 60.0}, "align": {"voxel_size": 0.15},
 @pytest.fixture(scope="module")
 def tiny_layout_scene(tmp_path_factory):
     import simulate
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
 
     root = tmp_path_factory.mktemp("abl") / "rooms"
     simulate.generate_scene(root, preset="cuboid", views=2, test_views=1, height=16, seed=1, effects="none",

@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from evaluation.flythrough import interpolate_poses, path_views, render_flythrough, write_video
 from evaluation.model_io import equirect_camera, pinhole_camera
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 
 def _pose(yaw_deg, pos):

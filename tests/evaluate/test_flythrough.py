@@ -19,7 +19,7 @@ from evaluation.flythrough import (
     walk_poses,
     write_video,
 )
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 from pipeline.importers import pose_to_nerfstudio
 
 imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")

@@ -15,7 +15,7 @@ import pytest
 
 from evaluation.report import build_report, stage_durations
 from evaluation.report_sections import boundary_rows, settings_without_effect, stage_file
-from pipeline.scene_loader import load_scene
+from schemas.scene_loader import load_scene
 from simulate.generate import generate_scene
 from tests.clitools import run_main
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 from export_helpers import random_gaussians
 
-from pipeline.fsutil import atomic_write
+from runfs.fsutil import atomic_write
 from export.splat import SPLAT_DTYPE, read_splat, splat_order, write_splat
 from export.spz import MAGIC, read_spz, spz_bytes, spz_header, write_spz
 from export.transform import to_y_up

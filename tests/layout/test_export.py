@@ -15,7 +15,7 @@ from layoutnet.command import export_layout_model_command
 from layoutnet.export import export_checkpoint, load_checkpoint
 from layoutnet.inference import LayoutModel
 from layoutnet.model import HorizonNet
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 torch.set_num_threads(2)
 

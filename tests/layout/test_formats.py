@@ -10,7 +10,7 @@ from layout_helpers import L_SHAPE, exact_boundaries, match_corners, world_to_ca
 
 from layoutnet import postprocess as pp
 from layoutnet.formats import horizonnet_json, read_layout
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 H_CAM, H_ROOM = 1.45, 2.7
 

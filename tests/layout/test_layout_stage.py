@@ -23,7 +23,7 @@ from layout_helpers import (
 from shapely.geometry import Point, Polygon
 
 from layoutnet.formats import horizonnet_json
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 REPO = Path(__file__).resolve().parents[2]
 simulate = pytest.importorskip("simulate", reason="simulate/ not available yet")
@@ -209,7 +209,7 @@ def test_missing_camera_height_assumes_1_6_m(tmp_path):
 
 
 def test_skip_reason_and_params(tmp_path):
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
     from stages import layout
 
     root, _ = _analytic_scene(tmp_path)

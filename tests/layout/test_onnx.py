@@ -16,7 +16,7 @@ from shapely.geometry import Point, Polygon
 
 from layoutnet.export import export_onnx
 from layoutnet.inference import LayoutModel, resolve_providers
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 torch.set_num_threads(2)
 

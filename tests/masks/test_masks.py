@@ -16,7 +16,7 @@ import torch
 from evaluation import metrics as M
 from gaussians.losses import l1_loss, photometric_loss, psnr, ssim
 from panogeom.equirect import nadir_cap, row_latitudes
-from pipeline.scene_loader import load_scene, valid_mask
+from schemas.scene_loader import load_scene, valid_mask
 from simulate.generate import generate_scene
 from tests.clitools import invoke
 

@@ -18,7 +18,7 @@ import torch
 import yaml
 
 from layoutnet.model import HorizonNet
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 from tests.clitools import invoke
 
 torch.set_num_threads(2)

@@ -109,7 +109,7 @@ def test_image_not_two_to_one(tiny_scene, capsys):
 
 
 def test_debug_shows_traceback(tmp_path, capsys):
-    from pipeline.errors import PanoError
+    from runfs.errors import PanoError
 
     old = sys.argv
     sys.argv = ["pano-pipe", "--debug", "run", "all", str(tmp_path / "nowhere")]

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from pipeline.bench_train import _markdown, _median, bench_train
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 
 def _run(its, seconds, psnr, parts):

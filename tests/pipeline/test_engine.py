@@ -10,7 +10,7 @@ import pytest
 from pydantic import BaseModel, ConfigDict
 
 from pipeline.engine import Engine, ancestors, topological_order
-from pipeline.scene_loader import load_scene
+from schemas.scene_loader import load_scene
 from pipeline.stage import StageContext, StageSpec
 
 CALLS: Counter[str] = Counter()
@@ -205,7 +205,7 @@ def test_run_log_records_start_end_duration(tiny_scene, tmp_path):
 
 
 def test_unknown_stage_in_config_is_reported(tiny_scene, tmp_path):
-    from pipeline.errors import PanoError
+    from runfs.errors import PanoError
 
     with pytest.raises(PanoError, match="unknown stage"):
         engine(tiny_scene, tmp_path / "run", {"nope": {}})

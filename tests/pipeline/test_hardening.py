@@ -18,8 +18,9 @@ import numpy as np
 import pytest
 
 from pipeline import cli
+from pipeline.signals import Terminated
 from tests.clitools import invoke, run_main
-from pipeline.fsutil import run_folder_lock
+from runfs.fsutil import run_folder_lock
 from simulate.generate import generate_scene
 
 FAST = ["--set", "train.iterations=5", "--set", "train.height=8"]
@@ -159,7 +160,7 @@ def test_unicode_view_names_are_fine(work, capsys):
 
 
 # ----------------------------------------------------------------------------- #5 exit codes
-@pytest.mark.parametrize("exc", [KeyboardInterrupt, lambda: __import__("typer").Exit(130), cli.Terminated])
+@pytest.mark.parametrize("exc", [KeyboardInterrupt, lambda: __import__("typer").Exit(130), Terminated])
 def test_interrupts_exit_130(work, exc, monkeypatch, capsys):
     from pipeline.engine import Engine
 
@@ -320,7 +321,7 @@ def test_model_files_enter_the_key_by_content_and_resolve_from_the_scene(work, c
     from pydantic import BaseModel
 
     from pipeline.engine import Engine
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
     from pipeline.stage import StageSpec
 
     class Params(BaseModel):

@@ -265,7 +265,7 @@ def test_status_says_which_views_lack_a_pose(capture, tmp_path, capsys):
     """An imported scene has every pose (poses skipped); with two left out, status says why it runs."""
     from pipeline.engine import Engine
     from pipeline.registry import build_registry
-    from pipeline.scene_loader import load_scene
+    from schemas.scene_loader import load_scene
 
     model, images = capture
     assert invoke(["import-colmap", model, images, tmp_path / "scene", "--scale", "1"], capsys)[0] == 0

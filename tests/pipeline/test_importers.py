@@ -12,7 +12,7 @@ import pytest
 
 from panogeom import angles_to_dirs
 from pipeline import cli
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 from pipeline.importers import (
     import_nerfstudio,
     nerfstudio_to_pose,
@@ -20,8 +20,8 @@ from pipeline.importers import (
     sanitize_stem,
     unique_names,
 )
-from pipeline.paths import safe_stem
-from pipeline.scene_loader import load_scene
+from runfs.paths import safe_stem
+from schemas.scene_loader import load_scene
 
 
 def nerfstudio_direction(x_ndc: float, y_ndc: float) -> np.ndarray:

@@ -11,7 +11,7 @@ import simulate
 from pipeline import cli
 from pipeline.engine import Engine
 from pipeline.registry import build_registry
-from pipeline.scene_loader import load_scene
+from schemas.scene_loader import load_scene
 
 
 def plan(scene_dir, tmp_path):

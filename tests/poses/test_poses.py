@@ -12,7 +12,7 @@ import pytest
 import simulate
 from pipeline.engine import Engine
 from pipeline.registry import build_registry
-from pipeline.scene_loader import load_scene
+from schemas.scene_loader import load_scene
 from sfm.bench import SCENE_EFFECTS, unposed_copy
 from sfm.frame import pose_errors, rotation_angle_deg
 from tests.clitools import invoke

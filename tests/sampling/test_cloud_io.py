@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 from stages.cloud_io import read_cloud, write_cloud
 
 

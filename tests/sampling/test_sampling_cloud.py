@@ -10,8 +10,8 @@ import shapely
 from pydantic import ValidationError
 from shapely.geometry import LineString, Polygon
 
-from pipeline.errors import PanoError
-from pipeline.scene_loader import load_scene
+from runfs.errors import PanoError
+from schemas.scene_loader import load_scene
 from pipeline.stage import Loaded, StageContext
 from schemas.layout import LayoutOutput
 from schemas.union import Room

@@ -28,7 +28,7 @@ from gaussians.model import render
 from gaussians.trainer import Trainer, scene_extent
 from panogeom.equirect import ray_directions
 from panogeom.images import read_rgb
-from pipeline.scene_loader import load_scene, valid_mask
+from schemas.scene_loader import load_scene, valid_mask
 
 H, ITERATIONS, SEED, NADIR_DEG = 32, 300, 1, 20.0
 

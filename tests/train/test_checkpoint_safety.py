@@ -22,8 +22,8 @@ from train_helpers import load_views, rooms, small_config
 import stages.train as T
 from gaussians.init import random_points
 from gaussians.trainer import Trainer
-from pipeline.errors import PanoError
-from pipeline.scene_loader import load_scene
+from runfs.errors import PanoError
+from schemas.scene_loader import load_scene
 from pipeline.stage import StageContext
 
 BIN = Path(sys.executable).parent

@@ -14,8 +14,8 @@ import splatting
 import stages.train as T
 from gaussians.densify import gradient_scale
 from gaussians.losses import l1_loss
-from pipeline.errors import PanoError
-from pipeline.scene_loader import load_scene
+from runfs.errors import PanoError
+from schemas.scene_loader import load_scene
 from pipeline.stage import Loaded, StageContext
 from test_stage import ctx_for
 

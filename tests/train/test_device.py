@@ -9,7 +9,7 @@ from pydantic import ValidationError
 
 from gaussians.init import random_points
 from gaussians.trainer import Trainer
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 from stages.train import Params, resolve_device
 from train_helpers import camera_positions, load_views, rooms, small_config
 

@@ -13,8 +13,8 @@ import torch
 import splatting
 import stages.train as T
 from gaussians import load_ply
-from pipeline.errors import PanoError
-from pipeline.scene_loader import load_scene
+from runfs.errors import PanoError
+from schemas.scene_loader import load_scene
 from pipeline.stage import Loaded, StageContext
 from schemas.sampling import SamplingOutput
 from schemas.train import TrainOutput

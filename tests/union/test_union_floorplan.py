@@ -10,8 +10,8 @@ import pytest
 from shapely.geometry import Polygon
 from shapely.ops import unary_union
 
-from pipeline.errors import PanoError
-from pipeline.scene_loader import load_scene
+from runfs.errors import PanoError
+from schemas.scene_loader import load_scene
 from pipeline.stage import Loaded, StageContext
 from schemas.layout import LayoutOutput, ViewLayout
 from stages import union as U

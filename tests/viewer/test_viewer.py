@@ -86,7 +86,7 @@ def test_layers_read_from_the_run(finished):
 
 
 def test_missing_model_is_one_clear_error(finished, tmp_path):
-    from pipeline.errors import PanoError
+    from runfs.errors import PanoError
     from viewer.data import resolve_target
 
     with pytest.raises(PanoError, match="no run folder"):

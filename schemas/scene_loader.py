@@ -2,36 +2,15 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import cv2
 import numpy as np
 from pydantic import ValidationError
 
-from pipeline.errors import PanoError, describe_validation_error, read_json
+from runfs.errors import PanoError, describe_validation_error, read_json
+from runfs.limits import MIN_IMAGE_HEIGHT, check_image_size, image_size, max_megapixels, read_image
 from schemas.scene import Scene, SceneManifest, View
-
-#: Images over this many megapixels are refused before decoding (a 20000x10000 PNG of zeros is
-#: 583 KB on disk and 600 MB decoded). `--max-megapixels` or PANO_PIPE_MAX_MEGAPIXELS change it.
-DEFAULT_MAX_MEGAPIXELS = 64.0
-#: The smallest panorama the stages can use (a pixel is 360/W degrees wide).
-MIN_IMAGE_HEIGHT = 8
-
-
-def max_megapixels() -> float:
-    """The image-size limit in force: the environment's, else the default."""
-    raw = os.environ.get("PANO_PIPE_MAX_MEGAPIXELS")
-    if raw is None:
-        return DEFAULT_MAX_MEGAPIXELS
-    try:
-        value = float(raw)
-    except ValueError:
-        raise PanoError("PANO_PIPE_MAX_MEGAPIXELS", f"must be a number of megapixels, got {raw!r}") from None
-    if not value > 0:
-        raise PanoError("PANO_PIPE_MAX_MEGAPIXELS", f"must be positive, got {raw!r}")
-    return value
-
 
 def load_scene(root: str | Path, check_images: bool = True) -> Scene:
     root = Path(root)
@@ -66,45 +45,11 @@ def load_scene(root: str | Path, check_images: bool = True) -> Scene:
     return scene
 
 
-def image_size(path: Path) -> tuple[int, int] | None:
-    """(H, W) from the file header without decoding the pixels, or None if the header is not
-    one Pillow reads (OpenCV then decodes it, under its own size limit)."""
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as im:
-            w, h = im.size
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
-        return None
-    except Image.DecompressionBombError:  # Pillow's own limit; ours is checked by the caller
-        return None
-    return int(h), int(w)
-
-
-def check_image_size(path: Path, limit_mp: float, min_height: int = MIN_IMAGE_HEIGHT) -> tuple[int, int] | None:
-    """Refuse an image over `limit_mp` megapixels (or under `min_height` rows) from its header."""
-    from PIL import Image
-
-    Image.MAX_IMAGE_PIXELS = None  # Pillow would warn or refuse on its own terms; ours is clearer
-    hw = image_size(path)
-    if hw is None:
-        return None
-    h, w = hw
-    if h * w > limit_mp * 1e6:
-        raise PanoError(path, f"image is {w}x{h} ({h * w / 1e6:.0f} megapixels), over the limit of "
-                              f"{limit_mp:g}; resize it, or raise --max-megapixels")
-    if h < min_height:
-        raise PanoError(path, f"image is {w}x{h}; panoramas need at least {min_height} rows")
-    return hw
-
-
 def check_panorama(path: Path, named_by: str, limit_mp: float | None = None) -> tuple[int, int]:
     """Return (H, W) of an equirectangular image, or raise naming the problem."""
     if not path.is_file():
         raise PanoError(path, f"image missing (named by {named_by})")
-    limit_mp = max_megapixels() if limit_mp is None else limit_mp
-    check_image_size(path, limit_mp)
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img = read_image(path, min_height=MIN_IMAGE_HEIGHT, limit_mp=limit_mp)
     if img is None:
         raise PanoError(path, "unreadable image (not a format OpenCV can decode)")
     h, w = img.shape[:2]
@@ -120,7 +65,7 @@ def check_panorama(path: Path, named_by: str, limit_mp: float | None = None) -> 
 def read_mask(path: Path, image_size: tuple[int, int]) -> np.ndarray:
     """A mask file as [H,W] bool (non-zero = valid) at its image's size `image_size` (H, W);
     unreadable, of another size, or masking out everything: a one-line PanoError."""
-    m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    m = read_image(path, what="mask")
     if m is None:
         raise PanoError(path, "unreadable mask (not a format OpenCV can decode)")
     if m.shape[:2] != tuple(image_size):
@@ -153,7 +98,7 @@ def valid_mask(scene: Scene, view: View, height: int, width: int) -> np.ndarray 
 
 
 def _decoded_size(path: Path) -> tuple[int, int]:
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img = read_image(path)
     if img is None:
         raise PanoError(path, "unreadable image (not a format OpenCV can decode)")
     return img.shape[:2]

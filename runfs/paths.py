@@ -2,9 +2,13 @@
 
 - Every path a scene names resolves inside the scene folder, after symlinks.
 - View and scene names are safe file-name stems (they become file and folder names).
-- Every path the pipeline writes resolves inside the run folder; the run folder
-  and the scene folder never overlap; only a folder pano-pipe made (it holds the
-  marker file) is ever written into, cleaned or replaced.
+- Every path the pipeline reads, writes or deletes under a run folder stays inside it: the run
+  folder holds no symbolic link (pano-pipe never makes one; `open_run_folder` refuses a folder
+  holding one before any command touches it), and a path an artifact names is relative and
+  stays inside its folder (`run_path`, which also refuses a link on the way, so a link planted
+  while a command runs is refused too where the path is opened). The run folder and the scene
+  folder never overlap; only a folder pano-pipe made (it holds the marker file) is ever written
+  into, cleaned or replaced.
 
 Everything else in pano-pipe goes through these functions rather than joining
 user text onto paths itself.
@@ -13,10 +17,11 @@ user text onto paths itself.
 from __future__ import annotations
 
 import json
+import os
 import unicodedata
 from pathlib import Path, PurePosixPath, PureWindowsPath
 
-from pipeline.errors import PanoError
+from runfs.errors import PanoError
 
 #: Longest name in UTF-8 bytes: file systems allow 255, and suffixes such as
 #: `.raw_boundaries.npy` or `.tmp-<stage>-xxxxxxxx` must still fit.
@@ -59,19 +64,19 @@ def shorten(text: str, limit: int = 60) -> str:
     return r if len(r) <= limit else r[: limit - 4] + "...'"
 
 
-def relative_problem(rel: str) -> str | None:
+def relative_problem(rel: str, folder: str = "scene folder", named_in: str = "scene.json") -> str | None:
     """Why `rel` is not a relative path that stays inside its folder (lexically), or None."""
     if not isinstance(rel, str) or not rel:
         return "must be a non-empty relative path"
     if "\x00" in rel:
         return "holds a NUL character"
     if PurePosixPath(rel).is_absolute() or PureWindowsPath(rel).is_absolute() or PureWindowsPath(rel).drive:
-        return "is absolute; paths in scene.json are relative to the scene folder"
+        return f"is absolute; paths in {named_in} are relative to the {folder}"
     depth = 0
     for part in PurePosixPath(rel.replace("\\", "/")).parts:
         depth += -1 if part == ".." else (0 if part == "." else 1)
         if depth < 0:
-            return "leaves the scene folder ('..')"
+            return f"leaves the {folder} ('..')"
     return None
 
 
@@ -122,9 +127,10 @@ def overlap_problem(a: Path, b: Path) -> str | None:
     return None
 
 
-def check_run_folder(out_dir: Path, scene_root: Path) -> Path:
-    """Refuse a run folder that overlaps the scene folder, is a file, or is a
-    non-empty folder pano-pipe did not make. Returns it unchanged."""
+def check_run_folder(out_dir: Path, scene_root: Path, links_ok: bool = False) -> Path:
+    """Refuse a run folder that overlaps the scene folder, is a file, is a non-empty folder
+    pano-pipe did not make, or (unless `links_ok`: `clean` removes links without following them)
+    holds a symbolic link. Returns it unchanged."""
     out_dir = Path(out_dir)
     problem = overlap_problem(out_dir, scene_root)
     if problem:
@@ -135,7 +141,70 @@ def check_run_folder(out_dir: Path, scene_root: Path) -> Path:
     if out_dir.is_dir() and not is_run_folder(out_dir) and any(out_dir.iterdir()):
         raise PanoError(out_dir, f"not a pano-pipe run folder (no {RUN_MARKER}) and not empty; "
                                  "choose a new or empty folder for --out")
+    if not links_ok:
+        refuse_links(out_dir)
     return out_dir
+
+
+# ----------------------------------------------------------------------------- inside a run folder
+LINK_PROBLEM = ("is a symbolic link inside the run folder; pano-pipe never makes one, and reading, "
+                "writing or deleting through it would reach outside the run folder (remove it)")
+
+
+def refuse_links(run_dir: Path) -> None:
+    """Refuse a run folder that holds a symbolic link anywhere below it (the folder itself may be
+    one: the user named it). Every command calls this (through `check_run_folder` or
+    `open_run_folder`) before it reads, writes or deletes anything in the folder."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        return
+    stack = [run_dir]
+    while stack:
+        folder = stack.pop()
+        try:
+            entries = list(os.scandir(folder))
+        except OSError as e:
+            raise PanoError(folder, f"cannot list the run folder: {e.strerror or e}") from None
+        for entry in entries:
+            if entry.is_symlink():
+                raise PanoError(entry.path, LINK_PROBLEM)
+            if entry.is_dir(follow_symlinks=False):
+                stack.append(Path(entry.path))
+
+
+def run_path(folder: Path, rel: str | Path, named_by: str | None = None) -> Path:
+    """`folder / rel` for a folder of a run (the run folder, a stage's folder), refusing a `rel`
+    that is absolute or leaves the folder ('..'), and a symbolic link at any component below
+    `folder` (existing or not yet: the path need not exist). Paths named by artifacts and every
+    file a command writes or deletes in a run folder go through here."""
+    folder = Path(folder)
+    text = rel.as_posix() if isinstance(rel, PurePosixPath | Path) else rel
+    where = f" (named by {named_by})" if named_by else ""
+    problem = relative_problem(text, folder="run folder", named_in="artifacts")
+    if problem:
+        raise PanoError(folder / "artifact.json" if named_by else folder, f"{shorten(str(text))} {problem}{where}")
+    path = folder
+    for part in PurePosixPath(text.replace("\\", "/")).parts:
+        if part in ("", "."):
+            continue
+        path = path / part
+        if path.is_symlink():
+            raise PanoError(path, LINK_PROBLEM)
+    return path
+
+
+def open_run_folder(run_dir: Path, must_exist: bool = True) -> Path:
+    """An existing run folder given to a command that reads it (export, view): a pano-pipe run
+    folder holding no symbolic link."""
+    run_dir = Path(run_dir)
+    if not run_dir.exists():
+        if must_exist:
+            raise PanoError(run_dir, "no such run folder")
+        return run_dir
+    if not run_dir.is_dir():
+        raise PanoError(run_dir, "not a folder (expected a pano-pipe run folder)")
+    refuse_links(run_dir)
+    return run_dir
 
 
 def is_run_folder(path: Path) -> bool:
@@ -156,6 +225,18 @@ def mark_run_folder(out_dir: Path, scene_root: Path) -> None:
         marker.write_text(json.dumps({"made_by": "pano-pipe", "scene": str(Path(scene_root).resolve())}) + "\n")
 
 
-def default_run_folder(scene_name: str) -> Path:
+def run_folder_name(scene_name: str, scene_root: Path | None = None) -> str:
+    """The name of a scene's run folder (runs/<name>/, a batch's OUT/<name>/): its scene name,
+    which must be a safe stem. The name comes from scene.json, else from the folder's name, which
+    nothing checked before (`scan 10:30`, `-x`, `.x`)."""
+    problem = stem_problem(scene_name)
+    if problem:
+        raise PanoError(scene_root, f"the scene name {shorten(scene_name)} (scene.json \"name\", else the "
+                                    f"folder's name) names its run folder, and it {problem}; set a \"name\" in "
+                                    "scene.json (or give --out)")
+    return scene_name
+
+
+def default_run_folder(scene_name: str, scene_root: Path | None = None) -> Path:
     """runs/<scene-name>/ under the working folder (the name is a checked stem)."""
-    return Path("runs") / safe_stem(scene_name)
+    return Path("runs") / run_folder_name(scene_name, scene_root)

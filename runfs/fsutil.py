@@ -31,13 +31,34 @@ def atomic_folder(final: Path) -> Iterator[Path]:
     try:
         yield tmp
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        with signals_held():
+            shutil.rmtree(tmp, ignore_errors=True)
         raise
-    old = final.parent / f".old-{final.name}-{uuid.uuid4().hex[:8]}"
-    if final.exists():
-        os.replace(final, old)
-    os.replace(tmp, final)
-    shutil.rmtree(old, ignore_errors=True)
+    # the swap and the cleanup run whole: a Ctrl-C or SIGTERM meanwhile is handled right after, so
+    # it never leaves the folder missing or an .old- copy behind
+    with signals_held():
+        old = final.parent / f".old-{final.name}-{uuid.uuid4().hex[:8]}"
+        if final.exists():
+            os.replace(final, old)
+        os.replace(tmp, final)
+        shutil.rmtree(old, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def signals_held() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM back for the block (the main thread's signal mask); one that
+    arrives meanwhile is handled as the block ends. Elsewhere than the main thread, a no-op."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def atomic_write(path: Path, write: Callable[[Path], object]) -> Path:
@@ -75,7 +96,7 @@ def sha256_json(obj) -> str:
 def open_no_follow(path: Path, flags: int) -> int:
     """os.open that refuses a symbolic link at `path`: a run folder's own files are written in
     place, and a planted link would carry those writes out of the folder."""
-    from pipeline.errors import PanoError
+    from runfs.errors import PanoError
 
     try:
         return os.open(path, flags | os.O_NOFOLLOW, 0o644)
@@ -100,7 +121,7 @@ def run_folder_lock(folder: Path) -> Iterator[None]:
     process ends, however it ends, so a killed run never leaves a stale lock behind."""
     import fcntl
 
-    from pipeline.errors import PanoError
+    from runfs.errors import PanoError
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-import os
 from pathlib import Path
 
 
@@ -57,31 +55,3 @@ def read_json(path: Path):
         raise PanoError(path, f"invalid JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
     except RecursionError:
         raise PanoError(path, "JSON nested too deeply") from None
-
-
-def load_npy(path: Path):
-    """A user's .npy array (never pickled objects), every failure a one-line PanoError naming it."""
-    import numpy as np
-
-    path = Path(path)
-    try:
-        with open(path, "rb") as f:
-            if f.read(6) != b"\x93NUMPY":  # np.load would otherwise try to unpickle it
-                raise PanoError(path, "not a readable .npy array (no .npy header)")
-            f.seek(0)
-            fmt = np.lib.format
-            read_header = {(1, 0): fmt.read_array_header_1_0, (2, 0): fmt.read_array_header_2_0}.get(
-                fmt.read_magic(f))
-            shape, _, dtype = read_header(f) if read_header else ((), False, np.dtype(object))
-            data_bytes = os.fstat(f.fileno()).st_size - f.tell()
-        # the header's claim checked against the file: np.load would allocate it first
-        if not dtype.hasobject and math.prod(shape) * dtype.itemsize > data_bytes:
-            raise PanoError(path, f"not a readable .npy array: its header claims shape {shape} of {dtype}, "
-                                  f"more than the file's {data_bytes} bytes of data")
-        arr = np.load(path, allow_pickle=False)
-    except ValueError as e:
-        why = "it holds Python objects (pickled), which pano-pipe never loads" if "allow_pickle" in str(e) else str(e)
-        raise PanoError(path, f"not a readable .npy array: {why}") from None
-    except (OSError, EOFError) as e:
-        raise PanoError(path, f"not a readable .npy array: {getattr(e, 'strerror', None) or e}") from None
-    return arr
