@@ -758,6 +758,12 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
     else:
         doc.p("No floor plan: run the union stage.", "warn")
 
+    # -- poses: how the cameras were placed (evaluation/report_poses.py)
+    from evaluation.report_poses import add_poses_section
+
+    if add_poses_section(doc, run_dir):
+        sections.append("poses")
+
     # -- configuration
     doc.h(2, "Configuration", "config")
     if params:

@@ -125,15 +125,47 @@ def _override_value(stage: str, param: str, text: str):
     return yaml.safe_load(text)
 
 
+#: The scene's own stage parameters (DESIGN.md): below --config and --set.
+SCENE_CONFIG = "pano-pipe.yaml"
+
+
+def scene_config(scene_dir: Path, config_file: Path | None, overrides: list[str] | None) -> tuple[dict[str, dict], str]:
+    """Stage parameters for a scene: its pano-pipe.yaml, then --config, then --set, each
+    parameter taken from the last that sets it."""
+    config, source = load_config(config_file, overrides)
+    own = Path(scene_dir) / SCENE_CONFIG
+    if not own.is_file():
+        return config, source
+    base, _ = load_config(own, None)
+    for stage, params in config.items():
+        base.setdefault(stage, {}).update(params)
+    given = config_file is not None or bool(overrides)
+    return base, (f"{own} < {source}" if given else str(own))
+
+
 def make_engine(scene_dir: Path, out: Path | None, config_file: Path | None, overrides: list[str] | None):
     from pipeline.engine import Engine
     from pipeline.registry import build_registry
     from pipeline.scene_loader import load_scene
 
     scene = load_scene(scene_dir)
-    config, source = load_config(config_file, overrides)
+    config, source = scene_config(scene.root, config_file, overrides)
     out_dir = out if out is not None else default_run_folder(scene.name)
     return Engine(scene, out_dir, build_registry(), config, config_source=source)
+
+
+def command_flags(out: Path | None, config: Path | None, overrides: list[str] | None) -> str:
+    """The flags a printed follow-up command must repeat to see the same run (--out, --config, --set)."""
+    import shlex
+
+    parts = []
+    if out is not None:
+        parts += ["--out", str(out)]
+    if config is not None:
+        parts += ["--config", str(config)]
+    for item in overrides or []:
+        parts += ["--set", item]
+    return "".join(" " + shlex.quote(p) for p in parts)
 
 
 def print_status_table(engine) -> None:
@@ -194,7 +226,9 @@ def run(
     for r in results:
         table.add_row(r.name, r.outcome, f"{r.duration_s:.2f}" if r.outcome == "ran" else "", escape(r.reason))
     console.print(table)
-    print_run_summary(engine, scene, [r.name for r in results if r.outcome in ("ran", "cached")])
+    print_run_summary(engine, scene, [r.name for r in results if r.outcome in ("ran", "cached")],
+                      command_flags(out if out is not None else engine.out_dir, config, set_),
+                      ran=[r.name for r in results if r.outcome == "ran"])
 
 
 def run_header(engine) -> str:
@@ -211,9 +245,19 @@ def run_header(engine) -> str:
                   f"device {device} (training runs on the CPU); output {engine.out_dir}")
 
 
-def print_run_summary(engine, scene_arg: Path, finished: list[str]) -> None:
-    """After a run: the model, its size, per-view test metrics and the report command."""
+def print_run_summary(engine, scene_arg: Path, finished: list[str], flags: str = "",
+                      ran: list[str] | None = None) -> None:
+    """After a run: what the poses stage found (when it ran), the model, its size, per-view test
+    metrics and the report command (with the flags this run was given)."""
+    import shlex
+
     out = engine.out_dir
+    if "poses" in (ran or []) and (out / "poses" / "artifact.json").is_file():
+        from stages.poses import summary as poses_summary
+
+        spec = engine.registry["poses"]
+        data = spec.output.model_validate(json.loads((out / "poses" / "artifact.json").read_text())["data"])
+        console.print(escape(poses_summary(data)), soft_wrap=True)
     if "train" in finished and (out / "train" / "artifact.json").is_file():
         data = json.loads((out / "train" / "artifact.json").read_text())["data"]
         psnr = data.get("final_train_psnr")
@@ -236,7 +280,7 @@ def print_run_summary(engine, scene_arg: Path, finished: list[str]) -> None:
         table.add_row("[bold]mean[/]", *(f"{mean[c]:.4g}" if mean.get(c) is not None else "—" for c in cols))
         console.print(table)
         console.print(escape(f"render speed: {data['fps']:.1f} FPS at {data['resolution'][0]}x"
-                             f"{data['resolution'][1]}; report: pano-pipe report {scene_arg} --out {out}"),
+                             f"{data['resolution'][1]}; report: pano-pipe report {shlex.quote(str(scene_arg))}{flags}"),
                       soft_wrap=True)
 
 

@@ -135,7 +135,21 @@ def check_run_folder(out_dir: Path, scene_root: Path) -> Path:
     if out_dir.is_dir() and not is_run_folder(out_dir) and any(out_dir.iterdir()):
         raise PanoError(out_dir, f"not a pano-pipe run folder (no {RUN_MARKER}) and not empty; "
                                  "choose a new or empty folder for --out")
+    owner = run_folder_scene(out_dir)
+    if owner is not None and resolved(owner) != resolved(scene_root):
+        raise PanoError(out_dir, f"this run folder belongs to the scene folder {owner}, not {scene_root} "
+                                 "(a copy of a scene keeps its name); choose another --out")
     return out_dir
+
+
+def run_folder_scene(out_dir: Path) -> Path | None:
+    """The scene folder a run folder's marker records, or None (no marker, or an older one)."""
+    try:
+        marker = json.loads((Path(out_dir) / RUN_MARKER).read_text())
+    except (OSError, ValueError):
+        return None
+    scene = marker.get("scene") if isinstance(marker, dict) else None
+    return Path(scene) if isinstance(scene, str) and scene else None
 
 
 def is_run_folder(path: Path) -> bool:
