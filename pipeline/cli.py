@@ -512,20 +512,28 @@ def bench_pipeline_command(
 
 @bench_app.command("poses")
 def bench_poses_command(
-    views: Annotated[str, typer.Option(help="Comma-separated view counts, one simulated scene each.")] = "4,8,13",
-    height: Annotated[int, typer.Option(min=64, help="Panorama height (width = 2 x height).")] = 512,
+    scenes: Annotated[str, typer.Option(
+        help="Comma-separated simulated captures: N (N views over three rooms) or chainN (N views along a "
+             "walk).")] = "8,13,chain8",
+    methods: Annotated[str, typer.Option(help="Comma-separated poses.method values to compare.")]
+    = "auto,equirect,rig,upright",
+    height: Annotated[int, typer.Option(min=64, help="Panorama height (width = 2 x height).")] = 1024,
     seed: Annotated[int, typer.Option(min=0, help="Simulator seed.")] = 0,
-    threads: Annotated[Optional[int], typer.Option(min=1, help="COLMAP threads (default: all CPUs).")] = None,
+    threads: Annotated[Optional[int], typer.Option(min=1, help="CPU threads (default: all CPUs).")] = None,
     out: BenchOutOpt = BENCH_OUT,
 ) -> None:
-    """Pose simulated scenes from their panoramas alone (rig and equirect): accuracy and time."""
-    from sfm.bench import bench_poses
+    """Pose simulated captures from their panoramas alone with each method: accuracy and time."""
+    from sfm.bench import METHODS, BenchScene, bench_poses
 
     try:
-        counts = [int(v) for v in views.split(",") if v.strip()]
-    except ValueError:
-        raise PanoError("--views", f"must be comma-separated whole numbers, got {views!r}") from None
-    bench_poses(counts, height, seed, threads, out / "bench_poses.md", out / "bench_poses.json")
+        parsed = [BenchScene.parse(v.strip()) for v in scenes.split(",") if v.strip()]
+    except ValueError as e:
+        raise PanoError("--scenes", str(e)) from None
+    chosen = [m.strip() for m in methods.split(",") if m.strip()]
+    bad = sorted(set(chosen) - set(METHODS))
+    if bad or not chosen:
+        raise PanoError("--methods", f"choose from {', '.join(METHODS)}, got {methods!r}")
+    bench_poses(parsed, chosen, height, seed, threads, out / "bench_poses.md", out / "bench_poses.json")
 
 
 @bench_app.command("batch")

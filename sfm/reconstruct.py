@@ -76,12 +76,19 @@ class Reconstruction:
 STEPS = ("views", "features", "matching", "mapping")
 
 
+def quiet_colmap() -> None:
+    """COLMAP logs every step to stderr (glog), its errors too ("Failed to create any sparse
+    model"); pano-pipe reports progress and failures itself, in one line, so only a fatal
+    message (a crash) may still reach stderr."""
+    pycolmap.logging.minloglevel = pycolmap.logging.Level.FATAL.value
+    pycolmap.logging.stderrthreshold = pycolmap.logging.Level.FATAL.value
+
+
 def reconstruct(panoramas: Sequence[Panorama], work_dir: Path, options: SfmOptions,
                 progress: Callable[[str], None] = lambda step: None) -> Reconstruction:
     """Run SfM on `panoramas` (all of one size) with its files in `work_dir`. Fewer than two
     registered panoramas come back as an empty Reconstruction that still counts the verified pairs."""
-    # COLMAP logs every step to stderr (glog); pano-pipe reports its own progress
-    pycolmap.logging.minloglevel = pycolmap.logging.Level.ERROR.value
+    quiet_colmap()
     pycolmap.set_random_seed(options.seed)
     work_dir.mkdir(parents=True, exist_ok=True)
     database = work_dir / "database.db"

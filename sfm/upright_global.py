@@ -25,9 +25,9 @@ triangulation, bundle adjustment. With levelled 360° cameras every step gets sm
    judge a direction against the consensus) and the fit repeated.
 6. **Triangulation** of tracks (matches chained through shared features, union-find),
    every ray within `track_tolerance_deg` of its point.
-7. **Joint refinement**: yaw and 3D centre of every panorama and every point, minimising
-   the robust (Huber) angular error of every observation (scipy least_squares, sparse
-   Jacobian); the cameras stay level. Camera heights may then differ a little, which the
+7. **Joint refinement** (bundle adjustment): yaw and 3D centre of every panorama and every
+   point, minimising the robust (Huber) angular error of every observation
+   (Levenberg-Marquardt, points eliminated by the Schur complement); the cameras stay level. Camera heights may then differ a little, which the
    pair model (one height) could not express.
 
 The largest connected set of panoramas is kept; the others are named with the reason.
@@ -41,14 +41,12 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import coo_matrix
 
 from sfm.reconstruct import Panorama, Reconstruction
 from sfm.rig import rotation_about_y
-from sfm.upright_pair import (PairResult, UprightPairOptions, _color, descriptor_distance, features,
+from sfm.upright_pair import (PairResult, UprightPairOptions, bearing_color, two_nearest, descriptor_distance, features,
                               pose_from_features)
 
 
@@ -106,18 +104,19 @@ def similarity(feats: list[tuple[np.ndarray, np.ndarray]], count: int, ratio: fl
     strongest features (symmetric, zero diagonal)."""
     n = len(feats)
     out = np.zeros((n, n), int)
-    matcher = cv2.BFMatcher(cv2.NORM_L2)
-    subset = [np.ascontiguousarray(d[:count]) for _, d in feats]
+    subset = [d[:count] for _, d in feats]
     for i in range(n):
         for j in range(i + 1, n):
             if len(subset[i]) < 2 or len(subset[j]) < 2:
                 continue
-            fwd = matcher.knnMatch(subset[i], subset[j], k=2)
-            bwd = {m[0].queryIdx: m[0].trainIdx for m in matcher.knnMatch(subset[j], subset[i], k=2)
-                   if len(m) == 2 and m[0].distance < ratio * m[1].distance}
-            good = sum(1 for m in fwd if len(m) == 2 and m[0].distance < ratio * m[1].distance
-                       and bwd.get(m[0].trainIdx) == m[0].queryIdx)
-            out[i, j] = out[j, i] = good
+            distance = descriptor_distance(subset[i], subset[j])
+            fwd, bwd = two_nearest(distance), two_nearest(distance.T)
+            rows = np.arange(len(fwd))
+            good = distance[rows, fwd[:, 0]] < ratio * distance[rows, fwd[:, 1]]
+            cols = np.arange(len(bwd))
+            back_ok = distance[bwd[:, 0], cols] < ratio * distance[bwd[:, 1], cols]
+            mutual = bwd[fwd[:, 0], 0] == rows
+            out[i, j] = out[j, i] = int(np.sum(good & mutual & back_ok[fwd[:, 0]]))
     return out
 
 
@@ -144,17 +143,21 @@ def average_yaws(n: int, edges: list[tuple[int, int, float, float]], tolerance: 
     """Yaws [n] (yaw 0 of the first panorama each component reaches is 0) from pairs (i, j,
     theta_ij = yaw_j - yaw_i, weight) and which pairs agree (within `tolerance`, radians).
     Hypotheses are random spanning trees drawn with weight-biased edge order; the one the most
-    weight agrees with is refined by least squares over the agreeing pairs."""
+    pairs agree with is refined by least squares over the agreeing pairs."""
     rng = np.random.default_rng(seed)
     weights = np.array([e[3] for e in edges], float)
     best, best_score = None, -1.0
     for trial in range(trials):
-        # Kruskal on randomly perturbed weights: the first trial is the maximum spanning tree
-        keys = weights if trial == 0 else weights * rng.uniform(0.2, 1.0, len(weights))
+        # Kruskal: the maximum spanning tree first, then perturbed weights and plain random orders
+        # (a strong wrong pair must be left out of some trees)
+        keys = (weights if trial == 0 else weights * rng.uniform(0.2, 1.0, len(weights)) if trial % 2
+                else rng.uniform(size=len(weights)))
         yaw = _tree_yaws(n, edges, np.argsort(-keys, kind="stable"))
         residual = np.array([abs(_wrap(yaw[j] - yaw[i] - t)) for i, j, t, _ in edges])
         agree = residual < tolerance
-        score = float(weights[agree].sum())
+        # consensus first (how many pairs agree), their inliers only between equals: one strong
+        # wrong pair must not outvote several weaker right ones
+        score = float(agree.sum()) + float(weights[agree].sum()) / (1.0 + float(weights.sum()))
         if score > best_score:
             best, best_score = (yaw, agree), score
     yaw, agree = best
@@ -434,52 +437,110 @@ def keep_observations(tracks: Tracks, keep: np.ndarray) -> Tracks:
 
 
 def refine(tracks: Tracks, yaw: np.ndarray, centres: np.ndarray, points: np.ndarray, views: list[int],
-           scale_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Joint least squares of the yaws, 3D centres and points of `views` (the first fixed) on the
-    observations' angular errors (Huber, `scale_deg`); the spread of the centres is held."""
-    free = views[1:]
-    col = {v: k for k, v in enumerate(free)}
-    nf, npnt = len(free), tracks.count
+           scale_deg: float, iterations: int = 30) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bundle adjustment in the upright parametrisation: the yaws, 3D centres and points of `views`
+    (the first fixed) minimising the observations' angular errors (Huber at `scale_deg`, by
+    iteratively reweighted Levenberg-Marquardt with the points eliminated by the Schur
+    complement: the camera system is 4 x views square). The residual of an observation is
+    normalise(X - c) - R(yaw) b in the world (its norm is the angle, to first order). The scale,
+    free in bearings, is held by rescaling about the first camera after every step."""
+    free = list(views[1:])
+    index = np.full(len(yaw), -1)
+    index[free] = np.arange(len(free))
+    nf = len(free)
+    cam = index[tracks.view]  # -1: the fixed camera
+    has = cam >= 0
+    point = tracks.point
+    counts = np.bincount(point, minlength=tracks.count)
+    order = np.argsort(point, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    # every ordered pair of observations of one point (their cameras couple through it)
+    reps = counts[point[order]]
+    first = np.repeat(order, reps)
+    offsets = np.arange(len(first)) - np.repeat(np.cumsum(reps) - reps, reps)
+    second = order[np.repeat(starts[point[order]], reps) + offsets]
+    pair_ok = has[first] & has[second]
+    first, second = first[pair_ok], second[pair_ok]
+    anchor = views[0]
     spread0 = float(np.mean(np.linalg.norm(centres[views] - centres[views].mean(axis=0), axis=1)))
-    obs_view = tracks.view
+    k = np.radians(scale_deg)
 
-    def unpack(x):
-        y, c = yaw.copy(), centres.copy()
-        y[free] = x[:nf]
-        c[free] = x[nf:4 * nf].reshape(nf, 3)
-        return y, c, x[4 * nf:].reshape(npnt, 3)
-
-    def residuals(x):
-        y, c, p = unpack(x)
+    def evaluate(y, c, p):
         origin, d = _world_rays(tracks, y, c)
-        v = p[tracks.point] - origin
-        v = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
-        # the chord between unit vectors is the angle, to first order, in three components
-        r = (v - d).ravel() / np.radians(scale_deg)
-        spread = float(np.mean(np.linalg.norm(c[views] - c[views].mean(axis=0), axis=1)))
-        return np.concatenate([r, [1e3 * (spread / spread0 - 1.0)]])
+        v = p[point] - origin
+        norm = np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+        u = v / norm
+        return u - d, u, norm, d
 
-    m = len(obs_view)
-    # Jacobian pattern: an observation's three rows depend on its view's yaw and centre and its point
-    rows, cols = [], []
-    obs_rows = np.arange(3 * m).reshape(m, 3)
-    for k in range(3):
-        for a in range(3):
-            rows.append(obs_rows[:, k])
-            cols.append(4 * nf + 3 * tracks.point + a)
-        has_col = np.array([v in col for v in obs_view], bool)
-        base = np.array([col.get(v, 0) for v in obs_view])
-        for offset in (None, 0, 1, 2):
-            rows.append(obs_rows[has_col, k])
-            cols.append(base[has_col] if offset is None else nf + 3 * base[has_col] + offset)
-    rows.append(np.full(3 * nf, 3 * m))
-    cols.append(np.arange(nf, 4 * nf))
-    rows, cols = np.concatenate(rows), np.concatenate(cols)
-    sparsity = coo_matrix((np.ones(len(rows), int), (rows, cols)), shape=(3 * m + 1, 4 * nf + 3 * npnt)).tocsr()
-    x0 = np.concatenate([yaw[free], centres[free].ravel(), points.ravel()])
-    fit = least_squares(residuals, x0, jac_sparsity=sparsity, loss="huber", f_scale=1.0,
-                        x_scale="jac", method="trf", tr_solver="lsmr", max_nfev=30)
-    y, c, p = unpack(fit.x)
+    def cost(r):
+        e = np.linalg.norm(r, axis=1)
+        return float(np.sum(np.where(e < k, e**2, 2 * k * e - k**2)))
+
+    y, c, p = yaw.copy(), centres.copy(), points.copy()
+    r, u, norm, d = evaluate(y, c, p)
+    current = cost(r)
+    lam = 1e-3
+    for _ in range(iterations):
+        e = np.linalg.norm(r, axis=1)
+        w = np.sqrt(np.where(e < k, 1.0, k / np.maximum(e, 1e-15)))[:, None]  # Huber as reweighting
+        jp = (np.eye(3)[None] - u[:, :, None] * u[:, None, :]) / norm[:, :, None]  # d r / d X
+        cy, sy = np.cos(y[tracks.view]), np.sin(y[tracks.view])
+        b = tracks.bearing
+        dyaw = -np.column_stack([-sy * b[:, 0] + cy * b[:, 2], np.zeros(len(b)), -cy * b[:, 0] - sy * b[:, 2]])
+        jc = np.concatenate([dyaw[:, :, None], -jp], axis=2)  # [M,3,4]: yaw, centre
+        jp, jc, rw = jp * w[:, :, None], jc * w[:, :, None], r * w
+        u_blocks = np.zeros((nf, 4, 4))
+        np.add.at(u_blocks, cam[has], np.einsum("mai,maj->mij", jc[has], jc[has]))
+        v_blocks = np.zeros((tracks.count, 3, 3))
+        np.add.at(v_blocks, point, np.einsum("mai,maj->mij", jp, jp))
+        w_blocks = np.einsum("mai,maj->mij", jc, jp)  # [M,4,3]
+        g_c = np.zeros((nf, 4))
+        np.add.at(g_c, cam[has], np.einsum("mai,ma->mi", jc[has], rw[has]))
+        g_p = np.zeros((tracks.count, 3))
+        np.add.at(g_p, point, np.einsum("mai,ma->mi", jp, rw))
+        while True:
+            v_damped = v_blocks + lam * (v_blocks * np.eye(3)[None] + 1e-9 * np.eye(3)[None])
+            v_inv = np.linalg.inv(v_damped)
+            y_obs = np.einsum("mij,mjk->mik", w_blocks, v_inv[point])  # W V^-1 per observation
+            s_mat = np.zeros((nf, nf, 4, 4))
+            np.add.at(s_mat, (cam[first], cam[second]),
+                      -np.einsum("mij,mkj->mik", y_obs[first], w_blocks[second]))
+            s_mat = s_mat.transpose(0, 2, 1, 3).reshape(4 * nf, 4 * nf)
+            u_damped = u_blocks + lam * (u_blocks * np.eye(4)[None] + 1e-9 * np.eye(4)[None])
+            for q in range(nf):
+                s_mat[4 * q:4 * q + 4, 4 * q:4 * q + 4] += u_damped[q]
+            rhs = -g_c.copy()
+            np.add.at(rhs, cam[has], np.einsum("mij,mj->mi", y_obs[has], g_p[point[has]]))
+            try:
+                delta_c = np.linalg.solve(s_mat, rhs.ravel()).reshape(nf, 4) if nf else np.zeros((0, 4))
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            wt_dc = np.zeros((tracks.count, 3))
+            np.add.at(wt_dc, point[has], np.einsum("mij,mi->mj", w_blocks[has], delta_c[cam[has]]))
+            delta_p = np.einsum("pij,pj->pi", v_inv, -g_p - wt_dc)
+            y_new, c_new = y.copy(), c.copy()
+            y_new[free] += delta_c[:, 0]
+            c_new[free] += delta_c[:, 1:]
+            p_new = p + delta_p
+            # the scale is free: hold the cameras' spread, about the fixed camera
+            spread = float(np.mean(np.linalg.norm(c_new[views] - c_new[views].mean(axis=0), axis=1)))
+            f = spread0 / spread
+            c_new = c[anchor] + (c_new - c[anchor]) * f
+            p_new = c[anchor] + (p_new - c[anchor]) * f
+            r_new, u_new, norm_new, d_new = evaluate(y_new, c_new, p_new)
+            new = cost(r_new)
+            if new < current:
+                y, c, p, r, u, norm, d = y_new, c_new, p_new, r_new, u_new, norm_new, d_new
+                improvement = (current - new) / max(current, 1e-30)
+                current, lam = new, max(lam / 10, 1e-9)
+                break
+            lam *= 10
+            if lam > 1e8:
+                improvement = 0.0
+                break
+        if improvement < 1e-7:
+            break
     return _wrap(y), c, p
 
 
@@ -616,7 +677,7 @@ def solve(panoramas: Sequence[Panorama], options: UprightGlobalOptions | None = 
     colors = np.zeros((tracks.count, 3), np.uint8)
     first = np.unique(tracks.point, return_index=True)[1]
     for k in first:
-        colors[tracks.point[k]] = _color(panoramas[tracks.view[k]], tracks.bearing[k])
+        colors[tracks.point[k]] = bearing_color(panoramas[tracks.view[k]], tracks.bearing[k])
     track_length = np.bincount(tracks.point, minlength=tracks.count)
     recon = Reconstruction(cam_from_world, reproj, observations, points, colors, track_length,
                            sum(r[3] for r in pairs_report), 1, timings)

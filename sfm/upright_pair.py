@@ -42,6 +42,10 @@ class UprightPairOptions:
     cell_deg: float = 2.0
     coarse_step_deg: float = 1.0
     coarse_tau_deg: float = 1.0
+    #: the coarse search scores at most this many putative matches (the closest in descriptor space)
+    coarse_max_matches: int = 800
+    #: the coarse search refines this many peaks of a 3x coarser grid (search_pose_peaks); 0: every pose
+    coarse_peaks: int = 12
     #: guided matching: candidates within this angle of the epipolar plane, ratio test among them
     guided_band_deg: float = 3.0
     guided_ratio: float = 0.8
@@ -160,6 +164,44 @@ def search_pose(b1: np.ndarray, b2: np.ndarray, step_deg: float = 1.0, tau_deg: 
     return PairPose(theta, phi, float(scores[i, j]), runner_up)
 
 
+def search_pose_peaks(b1: np.ndarray, b2: np.ndarray, step_deg: float = 1.0, tau_deg: float = 1.0,
+                      peaks: int = 12, factor: int = 3) -> PairPose:
+    """search_pose over every angle, about `factor`^2 times faster: the score on a grid `factor`
+    times coarser (tolerance likewise) finds the `peaks` best local maxima; the full-resolution
+    grid is evaluated only around them (±`factor`+1 steps). The best and the runner-up (best at
+    least 5° away) are those of the evaluated points: the same as the exhaustive search's when
+    the runner-up's peak is among the coarse grid's `peaks` best."""
+    coarse_step = step_deg * factor
+    grid = np.radians(np.arange(0.0, 360.0, coarse_step))
+    coarse = score_grid(b1, b2, grid, grid, np.radians(tau_deg * factor))
+    # local maxima of the wrapped coarse grid
+    neighbours = np.max([np.roll(coarse, (di, dj), axis=(0, 1)) for di in (-1, 0, 1) for dj in (-1, 0, 1)
+                         if di or dj], axis=0)
+    candidates = np.argwhere(coarse >= neighbours)
+    order = np.argsort(-coarse[candidates[:, 0], candidates[:, 1]], kind="stable")[:peaks]
+    span = np.arange(-(factor + 1), factor + 2) * step_deg
+    thetas, phis, scores = [], [], []
+    for i, j in candidates[order]:
+        t = np.radians(i * coarse_step + span)
+        f = np.radians(j * coarse_step + span)
+        sc = score_grid(b1, b2, t, f, np.radians(tau_deg))
+        thetas.append(np.repeat(t, len(f)))
+        phis.append(np.tile(f, len(t)))
+        scores.append(sc.ravel())
+    thetas, phis, scores = np.concatenate(thetas), np.concatenate(phis), np.concatenate(scores)
+    best = int(np.argmax(scores))
+
+    def wrapped(a):
+        return np.abs(np.mod(a + np.pi, 2 * np.pi) - np.pi)
+
+    limit = np.radians(5.0 + 1e-6)  # within 5° is near, as in search_pose
+    far = ~((wrapped(thetas - thetas[best]) <= limit) & (wrapped(phis - phis[best]) <= limit))
+    runner_up = float(scores[far].max()) if far.any() else 0.0
+    theta = float(np.mod(thetas[best] + np.pi, 2 * np.pi) - np.pi)
+    phi = float(np.mod(phis[best] + np.pi, 2 * np.pi) - np.pi)
+    return PairPose(theta, phi, float(scores[best]), runner_up)
+
+
 def features(pano: Panorama, options: UprightPairOptions) -> tuple[np.ndarray, np.ndarray]:
     """Unit bearings [N,3] in the panorama frame and RootSIFT descriptors [N,128] of SIFT features
     found on the panorama's perspective views (sfm.rig), outside its invalid pixels, strongest
@@ -197,7 +239,7 @@ def _cells(bearings: np.ndarray, cell_deg: float) -> np.ndarray:
     return column * 100000 + np.floor((lat + 90.0) / cell_deg).astype(np.int64)
 
 
-def _two_nearest(distance: np.ndarray) -> np.ndarray:
+def two_nearest(distance: np.ndarray) -> np.ndarray:
     """[N,min(2,M)] column indices of each row's smallest and second smallest entry (a partition,
     not a full sort: the rows hold thousands of candidates)."""
     if distance.shape[1] <= 2:
@@ -213,7 +255,7 @@ def putative_matches(b1: np.ndarray, b2: np.ndarray, distance: np.ndarray, optio
     distance) of those in each cell of either sphere."""
     if distance.shape[1] < 2:
         return np.zeros((0, 2), int)
-    nearest = _two_nearest(distance)
+    nearest = two_nearest(distance)
     d = np.take_along_axis(distance, nearest, axis=1)
     pairs = np.column_stack([np.arange(len(b1)), nearest[:, 0]])[d[:, 0] < options.ratio * d[:, 1]]
     pairs = pairs[np.argsort(distance[pairs[:, 0], pairs[:, 1]], kind="stable")]
@@ -247,7 +289,7 @@ def guided_matches(b1: np.ndarray, b2: np.ndarray, distance: np.ndarray, pose: P
         near = num < sin_band * np.minimum(sin_a[None], sin_b[:, None])
         front = (ac[:, None] - ab * bc[None] > 0) & (ab * ac[:, None] - bc[None] > 0)
         d = np.where(near & front, distance[start:start + chunk], np.inf)
-        nearest = _two_nearest(d)
+        nearest = two_nearest(d)
         v = np.take_along_axis(d, nearest, axis=1)
         if v.shape[1] < 2:
             v = np.column_stack([v, np.full(len(v), np.inf)])
@@ -285,7 +327,13 @@ def pose_from_features(a: Panorama, b: Panorama, feat_a: tuple[np.ndarray, np.nd
     pairs = putative_matches(f1, f2, distance, options)
     if len(pairs) < 8:
         return None
-    coarse = search_pose(f1[pairs[:, 0]], f2[pairs[:, 1]], options.coarse_step_deg, options.coarse_tau_deg)
+    # the putative matches are sorted by descriptor distance: the search takes the best ones
+    top = pairs[:options.coarse_max_matches]
+    if options.coarse_peaks:
+        coarse = search_pose_peaks(f1[top[:, 0]], f2[top[:, 1]], options.coarse_step_deg, options.coarse_tau_deg,
+                                   options.coarse_peaks)
+    else:
+        coarse = search_pose(f1[top[:, 0]], f2[top[:, 1]], options.coarse_step_deg, options.coarse_tau_deg)
     if coarse.score < options.min_distinct * coarse.runner_up:
         return None
     guided = guided_matches(f1, f2, distance, coarse, options)
@@ -301,7 +349,7 @@ def pose_from_features(a: Panorama, b: Panorama, feat_a: tuple[np.ndarray, np.nd
     if inliers.sum() < options.min_inliers:
         return None
     points = triangulate(g1[inliers], w2[inliers], pose.baseline)
-    colors = np.array([_color(a, x) for x in g1[inliers]], dtype=np.uint8).reshape(-1, 3)
+    colors = np.array([bearing_color(a, x) for x in g1[inliers]], dtype=np.uint8).reshape(-1, 3)
     residual = np.degrees(error[inliers])
     # equirect pixels per radian, to report the angular error where COLMAP reports pixels
     px = a.rgb.shape[1] / (2.0 * np.pi) * np.radians(float(residual.mean()) if len(residual) else 0.0)
@@ -313,7 +361,7 @@ def pose_from_features(a: Panorama, b: Panorama, feat_a: tuple[np.ndarray, np.nd
     return PairResult(pose, len(pairs), len(guided), int(inliers.sum()), residual, recon, guided[inliers])
 
 
-def _color(pano: Panorama, bearing: np.ndarray) -> np.ndarray:
+def bearing_color(pano: Panorama, bearing: np.ndarray) -> np.ndarray:
     h, w = pano.rgb.shape[:2]
     col, row = angles_to_pixel(*dirs_to_angles(bearing), h, w)
     return pano.rgb[int(np.clip(round(float(row)), 0, h - 1)), int(round(float(col))) % w]
