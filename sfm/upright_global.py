@@ -66,6 +66,8 @@ class UprightGlobalOptions:
     refine_scale_deg: float = 0.15
     #: observations this far from their point after the first refinement are dropped before the second
     refine_drop_deg: float = 0.6
+    #: points whose rays meet at a smaller angle are left out of the sparse cloud
+    min_triangulation_deg: float = 3.0
     seed: int = 0
     threads: int = 2
 
@@ -420,6 +422,20 @@ def angular_errors(tracks: Tracks, yaw: np.ndarray, centres: np.ndarray, points:
     return np.arccos(np.clip(cos, -1.0, 1.0))
 
 
+def triangulation_angles(tracks: Tracks, yaw: np.ndarray, centres: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """[points] the largest angle (radians) at each point between the rays from its cameras."""
+    origin, _ = _world_rays(tracks, yaw, centres)
+    v = points[tracks.point] - origin
+    v /= np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+    # the largest angle to the first ray of the track is within a factor 2 of the largest pairwise one
+    first = np.full(tracks.count, -1)
+    first[tracks.point[::-1]] = np.arange(len(tracks.point))[::-1]
+    cos = np.sum(v * v[first[tracks.point]], axis=1)
+    out = np.zeros(tracks.count)
+    np.maximum.at(out, tracks.point, np.arccos(np.clip(cos, -1.0, 1.0)))
+    return out
+
+
 def keep_observations(tracks: Tracks, keep: np.ndarray) -> Tracks:
     """The observations `keep` [M] bool; points left with fewer than two views are dropped."""
     point = tracks.point[keep]
@@ -662,6 +678,13 @@ def solve(panoramas: Sequence[Panorama], options: UprightGlobalOptions | None = 
         points = triangulate_tracks(tracks, yaw, centres)
     timings["refinement"] = time.perf_counter() - t0
     error = np.degrees(angular_errors(tracks, yaw, centres, points))
+    median_error = float(np.median(error))
+    # points seen under a small angle are poorly placed along their rays: far from every camera,
+    # they would mislead the floor fit (sfm.frame) and clutter the sparse cloud
+    well = triangulation_angles(tracks, yaw, centres, points) >= np.radians(options.min_triangulation_deg)
+    tracks = keep_observations(tracks, well[tracks.point])
+    points = triangulate_tracks(tracks, yaw, centres)
+    error = np.degrees(angular_errors(tracks, yaw, centres, points))
 
     width = panoramas[0].rgb.shape[1]
     px_per_deg = width / 360.0
@@ -681,4 +704,4 @@ def solve(panoramas: Sequence[Panorama], options: UprightGlobalOptions | None = 
     track_length = np.bincount(tracks.point, minlength=tracks.count)
     recon = Reconstruction(cam_from_world, reproj, observations, points, colors, track_length,
                            sum(r[3] for r in pairs_report), 1, timings)
-    return GlobalResult(recon, pairs_report, left_out, len(candidates), float(np.median(error)))
+    return GlobalResult(recon, pairs_report, left_out, len(candidates), median_error)

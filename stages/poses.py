@@ -184,7 +184,10 @@ def _auto(attempt: Callable[[str], _Solved], n: int) -> tuple[_Solved, list[_Sol
 
 def _failure_message(attempts: list[_Solved], method: str, n: int) -> str:
     """One line: why no method placed the views, and which method might."""
-    verified = max(s.result.verified_pairs for s in attempts)
+    # COLMAP's verification is the stricter (the upright pair search can return a confident pose for
+    # panoramas of different rooms, docs/poses.md): where it ran, it says whether anything is shared
+    judges = [s for s in attempts if s.method in ("equirect", "rig")] or attempts
+    verified = max(s.result.verified_pairs for s in judges)
     if verified == 0:
         text = (f"no two of the {n} panoramas share content that structure from motion can match; poses need "
                 "overlapping panoramas (docs/poses.md)")
@@ -212,9 +215,14 @@ def _solve(method: str, panoramas: list[Panorama], p: Params, height: int) -> _S
     if method == "upright":
         options = UprightGlobalOptions(seed=p.seed, threads=threads)
         with make_progress() as bar:
-            task = bar.add_task("upright solver: features", total=len(panoramas))
-            solved = solve_upright(panoramas, options, progress=lambda step, done, total: bar.update(
-                task, completed=done, total=total, description=f"upright solver: {step}"))
+            tasks: dict[str, int] = {}
+
+            def progress(step: str, done: int, total: int) -> None:
+                if step not in tasks:
+                    tasks[step] = bar.add_task(f"upright solver: {step}", total=total)
+                bar.update(tasks[step], completed=done)
+
+            solved = solve_upright(panoramas, options, progress=progress)
         out = _Solved(method, height, solved.reconstruction, solve=solved)
         if len(solved.reconstruction.cam_from_world) < 2:
             out.failure = ("no verified pair of panoramas" if solved.reconstruction.verified_pairs == 0 else
