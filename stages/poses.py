@@ -148,7 +148,7 @@ def run(ctx: StageContext) -> PosesOutput:
         solved = _solve(method, loaded[height], p, height)
         if solved.failure is None:
             try:
-                solved.alignment = _align(ctx, solved.result, p)
+                solved.alignment = _align(ctx, solved.result, p, method)
             except PosesFailure as e:
                 solved.failure = str(e)
         solved.seconds = time.perf_counter() - t0
@@ -236,7 +236,12 @@ def _solve(method: str, panoramas: list[Panorama], p: Params, height: int) -> _S
     return out
 
 
-def _align(ctx: StageContext, result: Reconstruction, p: Params) -> Alignment:
+#: The upright solver's cloud is dense at the cameras' height (the rig's horizon views): its floor
+#: is looked for only among points seen this far below the horizon (sfm.frame.fit_floor).
+FLOOR_DEPRESSION_DEG = {"upright": 15.0, "upright-pair": 0.0, "equirect": 0.0, "rig": 0.0}
+
+
+def _align(ctx: StageContext, result: Reconstruction, p: Params, method: str) -> Alignment:
     """Upright and metric: the frame of the given poses, else the floor and camera heights."""
     views = ctx.scene.views
     registered = [v for v in views if v.name in result.cam_from_world]
@@ -250,7 +255,8 @@ def _align(ctx: StageContext, result: Reconstruction, p: Params) -> Alignment:
     order = [v.name for v in views]
     try:
         return (align_to_known(cam_to_world, known, result.points, heights, order) if known
-                else align_to_floor(cam_to_world, result.points, heights, order))
+                else align_to_floor(cam_to_world, result.points, heights, order,
+                                    min_depression_deg=FLOOR_DEPRESSION_DEG[method]))
     except ValueError as e:
         raise PosesFailure(f"cannot make the poses metric: {e}") from None
 

@@ -13,7 +13,7 @@ import simulate
 from pipeline.engine import Engine
 from pipeline.registry import build_registry
 from pipeline.scene_loader import load_scene
-from sfm.bench import SCENE_EFFECTS, unposed_copy
+from sfm.bench import similarity_errors, simulate_capture, unposed_copy
 from sfm.frame import pose_errors, rotation_angle_deg
 from tests.clitools import invoke
 
@@ -26,12 +26,14 @@ def _shared_data() -> Path:
 
 
 ZIND = _shared_data() / "zind_pair"
+#: The cuboid scenes of the COLMAP tests: textured, furnished, shaded, with fine detail, no capture effects.
+COLMAP_EFFECTS = "texture,furniture,shading,aa,detail"
 
 
 def _simulated(tmp_path: Path, views: int, test_views: int = 0, height: int = 512, seed: int = 0):
     sim = tmp_path / f"sim{views}"
     simulate.generate_scene(sim, preset="cuboid", views=views, test_views=test_views, height=height, seed=seed,
-                            effects=SCENE_EFFECTS)
+                            effects=COLMAP_EFFECTS)
     scene = tmp_path / f"scene{views}"
     return scene, unposed_copy(sim, scene)
 
@@ -41,10 +43,29 @@ def _run_poses(scene: Path, run: Path, **params) -> dict:
     return json.loads((run / "poses" / "artifact.json").read_text())["data"]
 
 
-@pytest.mark.parametrize("views", [4, 8])
-def test_simulated_scene_posed_within_2cm_and_half_a_degree(tmp_path, views):
-    scene, truth = _simulated(tmp_path, views)
+@pytest.mark.slow
+@pytest.mark.parametrize("views,walk", [(8, False), (13, False), (8, True)], ids=["8-views", "13-views", "chain-8"])
+def test_capture_over_three_rooms_placed_by_default_within_5cm_and_1_degree(tmp_path, views, walk):
+    """Simulated captures with the hard parts of real ones (sfm.bench): three rooms seen from one
+    another only through openings, bare walls, noise, exposure, a tripod, neighbours 1-6 m apart;
+    the chain: cameras along a walk. Every view placed by the default, within 5 cm and 1°."""
+    scene = tmp_path / "scene"
+    truth = simulate_capture(scene, views, height=512, walk=walk)
     data = _run_poses(scene, tmp_path / "run")
+    assert data["requested_method"] == "auto" and data["method"] == "upright", data["attempts"]
+    posed = {v["view"]: np.asarray(v["pose"]) for v in data["views"] if v["registered"]}
+    assert sorted(posed) == sorted(truth) and data["left_out"] == {}
+    errors, scale = similarity_errors(posed, truth)
+    assert max(e[0] for e in errors.values()) < 0.05, errors
+    assert max(e[1] for e in errors.values()) < 1.0, errors
+    assert data["frame"] == "floor" and abs(scale - 1.0) < 0.05, scale  # the metric scale from the floor
+    assert data["residual_deg"] < 0.2
+
+
+@pytest.mark.parametrize("views", [4, 8])
+def test_simulated_scene_posed_by_colmap_within_2cm_and_half_a_degree(tmp_path, views):
+    scene, truth = _simulated(tmp_path, views)
+    data = _run_poses(scene, tmp_path / "run", method="equirect")
     posed = {v["view"]: np.asarray(v["pose"]) for v in data["views"] if v["registered"]}
     assert sorted(posed) == sorted(truth)
     errors = pose_errors(posed, truth)
@@ -66,7 +87,7 @@ def test_given_poses_fix_the_frame(tmp_path):
     for v in manifest["views"][:2]:
         v["pose"] = truth[v["name"]].tolist()
     (scene / "scene.json").write_text(json.dumps(manifest))
-    data = _run_poses(scene, tmp_path / "run")
+    data = _run_poses(scene, tmp_path / "run", method="equirect")  # cameras at different heights
     assert data["frame"] == "known poses"
     views = {v["view"]: v for v in data["views"]}
     for name, pose in truth.items():  # no alignment at all: the given views define the world
@@ -77,7 +98,7 @@ def test_given_poses_fix_the_frame(tmp_path):
 
 def test_downstream_stages_see_the_recovered_poses(tmp_path):
     scene, truth = _simulated(tmp_path, 4)
-    engine = Engine(load_scene(scene), tmp_path / "run", build_registry())
+    engine = Engine(load_scene(scene), tmp_path / "run", build_registry(), {"poses": {"method": "equirect"}})
     assert engine.plan()["poses"].state == "missing"
     engine.run(target="poses")
     completed = engine.completed_scene("union")
@@ -99,7 +120,7 @@ def test_panoramas_sharing_no_content_are_a_clear_error(tmp_path, capsys):
     for seed, name in ((1, "a"), (2, "b")):  # two different rooms
         sim = tmp_path / f"room{seed}"
         simulate.generate_scene(sim, preset="cuboid", views=1, test_views=0, height=256, seed=seed,
-                                effects=SCENE_EFFECTS)
+                                effects=COLMAP_EFFECTS)
         shutil.copyfile(sim / "images" / "train_00.png", scene / "images" / f"{name}.png")
     (scene / "scene.json").write_text(json.dumps({"views": [
         {"name": "a", "image": "images/a.png"}, {"name": "b", "image": "images/b.png"}]}))
