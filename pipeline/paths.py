@@ -136,10 +136,20 @@ def check_run_folder(out_dir: Path, scene_root: Path) -> Path:
         raise PanoError(out_dir, f"not a pano-pipe run folder (no {RUN_MARKER}) and not empty; "
                                  "choose a new or empty folder for --out")
     owner = run_folder_scene(out_dir)
-    if owner is not None and resolved(owner) != resolved(scene_root):
+    if owner is not None and resolved(owner) != resolved(scene_root) and _different_scenes(owner, scene_root):
         raise PanoError(out_dir, f"this run folder belongs to the scene folder {owner}, not {scene_root} "
                                  "(a copy of a scene keeps its name); choose another --out")
     return out_dir
+
+
+def _different_scenes(owner: Path, scene_root: Path) -> bool:
+    """Whether the scene folder a run folder records still exists with another scene.json than
+    `scene_root`'s: a scene moved or copied together with its run folder (the same scene.json)
+    may keep using it; an edited copy (poses taken out, say) may not."""
+    try:
+        return (owner / "scene.json").read_bytes() != (Path(scene_root) / "scene.json").read_bytes()
+    except OSError:
+        return False  # the recorded folder is gone (moved): the run folder goes with the scene
 
 
 def run_folder_scene(out_dir: Path) -> Path | None:

@@ -3,6 +3,7 @@ a run folder belongs to one scene folder; printed follow-up commands keep the fl
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -45,6 +46,11 @@ def test_run_folder_of_another_scene_folder_is_refused(tmp_path, capsys):
     run = tmp_path / "run"
     code, _, err = invoke(["run", "poses", scene, "--out", run], capsys)  # posed: the stage is skipped
     assert code == 0, err
+    code, _, err = invoke(["status", copy, "--out", run], capsys)
+    assert code == 0, err  # an identical copy (a scene moved with its run folder) may use it
+    manifest = json.loads((copy / "scene.json").read_text())
+    del manifest["views"][0]["pose"]  # the copy is edited: its results would replace the original's
+    (copy / "scene.json").write_text(json.dumps(manifest))
     code, _, err = invoke(["status", copy, "--out", run], capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1
     assert str(scene.resolve()) in err and str(copy) in err
