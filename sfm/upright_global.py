@@ -27,8 +27,9 @@ triangulation, bundle adjustment. With levelled 360° cameras every step gets sm
    every ray within `track_tolerance_deg` of its point.
 7. **Joint refinement** (bundle adjustment): yaw and 3D centre of every panorama and every
    point, minimising the robust (Huber) angular error of every observation
-   (Levenberg-Marquardt, points eliminated by the Schur complement); the cameras stay level. Camera heights may then differ a little, which the
-   pair model (one height) could not express.
+   (Levenberg-Marquardt, points eliminated by the Schur complement); the cameras stay
+   level. Camera heights may then differ a little, which the pair model (one height)
+   could not express.
 
 The largest connected set of panoramas is kept; the others are named with the reason.
 Scale: one unit is the mean distance of the centres from their mean; sfm.frame makes it metric.

@@ -245,7 +245,8 @@ def two_nearest(distance: np.ndarray) -> np.ndarray:
     if distance.shape[1] <= 2:
         return np.argsort(distance, axis=1)
     two = np.argpartition(distance, 1, axis=1)[:, :2]
-    swap = np.take_along_axis(distance, two[:, 1:], axis=1)[:, 0] < np.take_along_axis(distance, two[:, :1], axis=1)[:, 0]
+    first = np.take_along_axis(distance, two[:, :1], axis=1)[:, 0]
+    swap = np.take_along_axis(distance, two[:, 1:], axis=1)[:, 0] < first
     two[swap] = two[swap][:, ::-1]
     return two
 
