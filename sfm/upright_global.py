@@ -663,6 +663,10 @@ def solve(panoramas: Sequence[Panorama], options: UprightGlobalOptions | None = 
     # the frame: the first placed view at the origin, mean spread of the centres 1
     centres = centres - centres[placed[0]]
     spread = float(np.mean(np.linalg.norm(centres[placed] - centres[placed].mean(axis=0), axis=1)))
+    if not np.isfinite(spread) or spread <= 0:  # the directions did not separate the centres
+        empty = Reconstruction({}, {}, {}, np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, int),
+                               len(edges), 0, timings)
+        return GlobalResult(empty, pairs_report, left_out, len(candidates), float("nan"))
     centres /= spread
     points = triangulate_tracks(tracks, yaw, centres)
     error = angular_errors(tracks, yaw, centres, points)

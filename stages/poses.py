@@ -222,7 +222,10 @@ def _solve(method: str, panoramas: list[Panorama], p: Params, height: int) -> _S
                     tasks[step] = bar.add_task(f"upright solver: {step}", total=total)
                 bar.update(tasks[step], completed=done)
 
-            solved = solve_upright(panoramas, options, progress=progress)
+            try:
+                solved = solve_upright(panoramas, options, progress=progress)
+            except np.linalg.LinAlgError as e:  # a degenerate graph: a failure of the method, not of the run
+                return _Solved(method, height, _empty(0), failure=f"the global solve is degenerate ({e})")
         out = _Solved(method, height, solved.reconstruction, solve=solved)
         if len(solved.reconstruction.cam_from_world) < 2:
             out.failure = ("no verified pair of panoramas" if solved.reconstruction.verified_pairs == 0 else
