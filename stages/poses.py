@@ -196,12 +196,14 @@ def _failure_message(attempts: list[_Solved], method: str, n: int) -> str:
     else:
         text = "; ".join(f"{s.method}: {s.failure}" for s in attempts)
         text = f"no method placed the panoramas ({text})"
+    # the method not tried that likely works: COLMAP finds nothing between levelled panoramas metres
+    # apart (zind_pair), the upright solver nothing between tilted ones
     hint = {"equirect": "upright (levelled panoramas far apart)", "rig": "upright (levelled panoramas far apart)",
             "upright": "equirect (panoramas not levelled)", "upright-pair": "equirect (panoramas not levelled)"}
-    if method in hint and verified > 0:
+    if method in hint:
         text += f"; try --set poses.method={hint[method]}"
     if verified > 0:
-        text += " or give poses in scene.json"
+        text += ("; or " if method in hint else "; ") + "give poses in scene.json"
     return text
 
 

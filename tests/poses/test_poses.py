@@ -164,6 +164,15 @@ def test_zind_pair_posed_by_default_within_1_degree_3_degrees_and_5_percent(tmp_
 
 
 @pytest.mark.skipif(not ZIND.is_dir(), reason="shared data zind_pair absent")
+def test_colmap_failing_on_a_far_pair_suggests_the_upright_solver(tmp_path, capsys):
+    scene, _ = _zind_unposed(tmp_path)
+    code, out, err = invoke(["run", "poses", scene, "--out", tmp_path / "run", "--set", "poses.method=equirect"],
+                            capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1  # COLMAP's own log stays off stderr
+    assert "try --set poses.method=upright" in err
+
+
+@pytest.mark.skipif(not ZIND.is_dir(), reason="shared data zind_pair absent")
 def test_readme_recipe_on_a_copy_of_zind_pair(tmp_path, capsys, monkeypatch):
     """README "Your own panoramas (no poses)", as written, no --set: status, run poses, run all,
     report. The scene's pano-pipe.yaml keeps the training short, as a user would keep settings."""
