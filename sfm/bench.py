@@ -132,7 +132,7 @@ def bench_poses(scenes: list[BenchScene], methods: list[str], height: int, seed:
                         residual_deg=data.get("residual_deg"),
                         max_position_cm=100 * max(e[0] for e in errors.values()),
                         max_rotation_deg=max(e[1] for e in errors.values()),
-                        scale_error_pct=100 * abs(1.0 / scale - 1.0))
+                        scale_error_pct=100 * abs(1.0 / scale - 1.0), timings_s=data.get("timings_s", {}))
                 rows.append(row)
                 console.print(escape(f"{bench.label}, {method}: " + (failure or (
                     f"{row['registered']}/{bench.views} placed by {row['used']}, {row['max_position_cm']:.2f} cm, "
