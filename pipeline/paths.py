@@ -136,30 +136,32 @@ def check_run_folder(out_dir: Path, scene_root: Path) -> Path:
         raise PanoError(out_dir, f"not a pano-pipe run folder (no {RUN_MARKER}) and not empty; "
                                  "choose a new or empty folder for --out")
     owner = run_folder_scene(out_dir)
-    if owner is not None and resolved(owner) != resolved(scene_root) and _different_scenes(owner, scene_root):
+    if owner is not None and resolved(owner) != resolved(scene_root):
         raise PanoError(out_dir, f"this run folder belongs to the scene folder {owner}, not {scene_root} "
                                  "(a copy of a scene keeps its name); choose another --out")
     return out_dir
 
 
-def _different_scenes(owner: Path, scene_root: Path) -> bool:
-    """Whether the scene folder a run folder records still exists with another scene.json than
-    `scene_root`'s: a scene moved or copied together with its run folder (the same scene.json)
-    may keep using it; an edited copy (poses taken out, say) may not."""
-    try:
-        return (owner / "scene.json").read_bytes() != (Path(scene_root) / "scene.json").read_bytes()
-    except OSError:
-        return False  # the recorded folder is gone (moved): the run folder goes with the scene
-
-
-def run_folder_scene(out_dir: Path) -> Path | None:
-    """The scene folder a run folder's marker records, or None (no marker, or an older one)."""
+def _marker(out_dir: Path) -> dict:
     try:
         marker = json.loads((Path(out_dir) / RUN_MARKER).read_text())
     except (OSError, ValueError):
+        return {}
+    return marker if isinstance(marker, dict) else {}
+
+
+def run_folder_scene(out_dir: Path) -> Path | None:
+    """The scene folder a run folder belongs to: the one its marker records, while the run folder
+    is where the marker says it was made. A run folder moved or copied (with its scene, say) and
+    a marker from before the run folder was recorded belong to no scene yet: the next run claims
+    them (mark_run_folder)."""
+    marker = _marker(out_dir)
+    scene, made_at = marker.get("scene"), marker.get("run")
+    if not (isinstance(scene, str) and scene and isinstance(made_at, str) and made_at):
         return None
-    scene = marker.get("scene") if isinstance(marker, dict) else None
-    return Path(scene) if isinstance(scene, str) and scene else None
+    if resolved(Path(made_at)) != resolved(out_dir):
+        return None
+    return Path(scene)
 
 
 def is_run_folder(path: Path) -> bool:
@@ -176,8 +178,9 @@ def mark_run_folder(out_dir: Path, scene_root: Path) -> None:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     marker = out_dir / RUN_MARKER
-    if not marker.is_file():
-        marker.write_text(json.dumps({"made_by": "pano-pipe", "scene": str(Path(scene_root).resolve())}) + "\n")
+    if not marker.is_file() or run_folder_scene(out_dir) is None:  # new, moved, or from before "run"
+        marker.write_text(json.dumps({"made_by": "pano-pipe", "scene": str(Path(scene_root).resolve()),
+                                      "run": str(out_dir.resolve())}) + "\n")
 
 
 def default_run_folder(scene_name: str) -> Path:

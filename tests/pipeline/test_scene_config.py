@@ -3,7 +3,6 @@ a run folder belongs to one scene folder; printed follow-up commands keep the fl
 
 from __future__ import annotations
 
-import json
 import shutil
 from pathlib import Path
 
@@ -42,20 +41,31 @@ def test_a_bad_scene_file_is_one_line_naming_it(tmp_path, capsys):
 def test_run_folder_of_another_scene_folder_is_refused(tmp_path, capsys):
     scene = _scene(tmp_path)
     copy = tmp_path / "copy"
-    shutil.copytree(scene, copy)  # the same name in scene.json
+    shutil.copytree(scene, copy)  # the same name in scene.json: the same default run folder
     run = tmp_path / "run"
     code, _, err = invoke(["run", "poses", scene, "--out", run], capsys)  # posed: the stage is skipped
     assert code == 0, err
-    code, _, err = invoke(["status", copy, "--out", run], capsys)
-    assert code == 0, err  # an identical copy (a scene moved with its run folder) may use it
-    manifest = json.loads((copy / "scene.json").read_text())
-    del manifest["views"][0]["pose"]  # the copy is edited: its results would replace the original's
-    (copy / "scene.json").write_text(json.dumps(manifest))
-    code, _, err = invoke(["status", copy, "--out", run], capsys)
-    assert code == 2 and len(err.strip().splitlines()) == 1
-    assert str(scene.resolve()) in err and str(copy) in err
+    for command in (["status"], ["run", "all"], ["report"]):
+        code, _, err = invoke([*command, copy, "--out", run], capsys)
+        assert code == 2 and len(err.strip().splitlines()) == 1, (command, err)
+        assert str(scene.resolve()) in err and str(copy) in err
     code, _, err = invoke(["status", scene, "--out", run], capsys)
     assert code == 0, err
+
+
+def test_a_scene_moved_with_its_run_folder_keeps_it(tmp_path, capsys):
+    scene = _scene(tmp_path)
+    code, _, err = invoke(["run", "poses", scene, "--out", tmp_path / "run"], capsys)
+    assert code == 0, err
+    moved = tmp_path / "elsewhere"
+    moved.mkdir()
+    shutil.copytree(scene, moved / "scene")
+    shutil.copytree(tmp_path / "run", moved / "run")
+    code, _, err = invoke(["run", "poses", moved / "scene", "--out", moved / "run"], capsys)
+    assert code == 0, err
+    # the moved run folder now belongs to the moved scene, and only to it
+    code, _, err = invoke(["status", scene, "--out", moved / "run"], capsys)
+    assert code == 2 and str((moved / "scene").resolve()) in err
 
 
 def test_follow_up_commands_keep_the_flags():
