@@ -517,7 +517,7 @@ def bench_poses_command(
              "walk).")] = "8,13,chain8",
     methods: Annotated[str, typer.Option(help="Comma-separated poses.method values to compare.")]
     = "auto,equirect,rig,upright",
-    height: Annotated[int, typer.Option(min=64, help="Panorama height (width = 2 x height).")] = 1024,
+    height: Annotated[int, typer.Option(min=64, help="Panorama height (width = 2 x height).")] = 512,
     seed: Annotated[int, typer.Option(min=0, help="Simulator seed.")] = 0,
     threads: Annotated[Optional[int], typer.Option(min=1, help="CPU threads (default: all CPUs).")] = None,
     out: BenchOutOpt = BENCH_OUT,
