@@ -808,6 +808,12 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
     else:
         doc.p("No floor plan: run the union stage.", "warn")
 
+    # -- poses: how the cameras were placed (evaluation/report_poses.py), first as in the DAG
+    from evaluation.report_poses import add_poses_section
+
+    if add_poses_section(doc, run_dir):
+        sections.append("poses")
+
     # -- what each stage did (layout, depth alignment, ...): present only when the stage ran
     section_ctx = SectionContext(run_dir=run_dir, scene=scene, out_dir=out_dir, img_dir=img_dir)
     for section in STAGE_SECTIONS:

@@ -156,15 +156,47 @@ def _override_value(stage: str, param: str, text: str):
     return yaml.safe_load(text)
 
 
+#: The scene's own stage parameters (DESIGN.md): below --config and --set.
+SCENE_CONFIG = "pano-pipe.yaml"
+
+
+def scene_config(scene_dir: Path, config_file: Path | None, overrides: list[str] | None) -> tuple[dict[str, dict], str]:
+    """Stage parameters for a scene: its pano-pipe.yaml, then --config, then --set, each
+    parameter taken from the last that sets it."""
+    config, source = load_config(config_file, overrides)
+    own = Path(scene_dir) / SCENE_CONFIG
+    if not own.is_file():
+        return config, source
+    base, _ = load_config(own, None)
+    for stage, params in config.items():
+        base.setdefault(stage, {}).update(params)
+    given = config_file is not None or bool(overrides)
+    return base, (f"{own} < {source}" if given else str(own))
+
+
 def make_engine(scene_dir: Path, out: Path | None, config_file: Path | None, overrides: list[str] | None):
     from pipeline.engine import Engine
     from pipeline.registry import build_registry
     from schemas.scene_loader import load_scene
 
     scene = load_scene(scene_dir)
-    config, source = load_config(config_file, overrides)
+    config, source = scene_config(scene.root, config_file, overrides)
     out_dir = out if out is not None else default_run_folder(scene.name, scene.root)
     return Engine(scene, out_dir, build_registry(), config, config_source=source)
+
+
+def command_flags(out: Path | None, config: Path | None, overrides: list[str] | None) -> str:
+    """The flags a printed follow-up command must repeat to see the same run (--out, --config, --set)."""
+    import shlex
+
+    parts = []
+    if out is not None:
+        parts += ["--out", str(out)]
+    if config is not None:
+        parts += ["--config", str(config)]
+    for item in overrides or []:
+        parts += ["--set", item]
+    return "".join(" " + shlex.quote(p) for p in parts)
 
 
 def print_status_table(engine) -> None:
@@ -233,7 +265,9 @@ def run(
     for r in results:
         table.add_row(r.name, r.outcome, f"{r.duration_s:.2f}" if r.outcome == "ran" else "", escape(r.reason))
     console.print(table)
-    print_run_summary(engine, scene, [r.name for r in results if r.outcome in ("ran", "cached")])
+    print_run_summary(engine, scene, [r.name for r in results if r.outcome in ("ran", "cached")],
+                      command_flags(out if out is not None else engine.out_dir, config, set_),
+                      ran=[r.name for r in results if r.outcome == "ran"])
 
 
 def check_run_request(engine, target: str | None, until: str | None) -> None:
@@ -258,9 +292,19 @@ def run_header(engine) -> str:
                   f"device {device} (training runs on the CPU); output {engine.out_dir}")
 
 
-def print_run_summary(engine, scene_arg: Path, finished: list[str]) -> None:
-    """After a run: the model, its size, per-view test metrics and the report command."""
+def print_run_summary(engine, scene_arg: Path, finished: list[str], flags: str = "",
+                      ran: list[str] | None = None) -> None:
+    """After a run: what the poses stage found (when it ran), the model, its size, per-view test
+    metrics and the report command (with the flags this run was given)."""
+    import shlex
+
     out = engine.out_dir
+    if "poses" in (ran or []) and (out / "poses" / "artifact.json").is_file():
+        from stages.poses import summary as poses_summary
+
+        spec = engine.registry["poses"]
+        data = spec.output.model_validate(json.loads((out / "poses" / "artifact.json").read_text())["data"])
+        console.print(escape(poses_summary(data)), soft_wrap=True)
     if "train" in finished and (out / "train" / "artifact.json").is_file():
         data = json.loads((out / "train" / "artifact.json").read_text())["data"]
         psnr = data.get("final_train_psnr")
@@ -283,7 +327,7 @@ def print_run_summary(engine, scene_arg: Path, finished: list[str]) -> None:
         table.add_row("[bold]mean[/]", *(f"{mean[c]:.4g}" if mean.get(c) is not None else "—" for c in cols))
         console.print(table)
         console.print(escape(f"render speed: {data['fps']:.1f} FPS at {data['resolution'][0]}x"
-                             f"{data['resolution'][1]}; report: pano-pipe report {scene_arg} --out {out}"),
+                             f"{data['resolution'][1]}; report: pano-pipe report {shlex.quote(str(scene_arg))}{flags}"),
                       soft_wrap=True)
 
 
@@ -551,20 +595,28 @@ def bench_pipeline_command(
 
 @bench_app.command("poses")
 def bench_poses_command(
-    views: Annotated[str, typer.Option(help="Comma-separated view counts, one simulated scene each.")] = "4,8,13",
+    scenes: Annotated[str, typer.Option(
+        help="Comma-separated simulated captures: N (N views over three rooms) or chainN (N views along a "
+             "walk).")] = "8,13,chain8",
+    methods: Annotated[str, typer.Option(help="Comma-separated poses.method values to compare.")]
+    = "auto,equirect,rig,upright",
     height: Annotated[int, typer.Option(min=64, help="Panorama height (width = 2 x height).")] = 512,
     seed: Annotated[int, typer.Option(min=0, help="Simulator seed.")] = 0,
-    threads: Annotated[Optional[int], typer.Option(min=1, help="COLMAP threads (default: all CPUs).")] = None,
+    threads: Annotated[Optional[int], typer.Option(min=1, help="CPU threads (default: all CPUs).")] = None,
     out: BenchOutOpt = BENCH_OUT,
 ) -> None:
-    """Pose simulated scenes from their panoramas alone (rig and equirect): accuracy and time."""
-    from sfm.bench import bench_poses
+    """Pose simulated captures from their panoramas alone with each method: accuracy and time."""
+    from sfm.bench import METHODS, BenchScene, bench_poses
 
     try:
-        counts = [int(v) for v in views.split(",") if v.strip()]
-    except ValueError:
-        raise PanoError("--views", f"must be comma-separated whole numbers, got {views!r}") from None
-    bench_poses(counts, height, seed, threads, out / "bench_poses.md", out / "bench_poses.json")
+        parsed = [BenchScene.parse(v.strip()) for v in scenes.split(",") if v.strip()]
+    except ValueError as e:
+        raise PanoError("--scenes", str(e)) from None
+    chosen = [m.strip() for m in methods.split(",") if m.strip()]
+    bad = sorted(set(chosen) - set(METHODS))
+    if bad or not chosen:
+        raise PanoError("--methods", f"choose from {', '.join(METHODS)}, got {methods!r}")
+    bench_poses(parsed, chosen, height, seed, threads, out / "bench_poses.md", out / "bench_poses.json")
 
 
 @bench_app.command("batch")

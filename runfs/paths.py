@@ -143,7 +143,33 @@ def check_run_folder(out_dir: Path, scene_root: Path, links_ok: bool = False) ->
                                  "choose a new or empty folder for --out")
     if not links_ok:
         refuse_links(out_dir)
+    owner = run_folder_scene(out_dir)
+    if owner is not None and resolved(owner) != resolved(scene_root):
+        raise PanoError(out_dir, f"this run folder belongs to the scene folder {owner}, not {scene_root} "
+                                 "(a copy of a scene keeps its name); choose another --out")
     return out_dir
+
+
+def _marker(out_dir: Path) -> dict:
+    try:
+        marker = json.loads((Path(out_dir) / RUN_MARKER).read_text())
+    except (OSError, ValueError):
+        return {}
+    return marker if isinstance(marker, dict) else {}
+
+
+def run_folder_scene(out_dir: Path) -> Path | None:
+    """The scene folder a run folder belongs to: the one its marker records, while the run folder
+    is where the marker says it was made. A run folder moved or copied (with its scene, say) and
+    a marker from before the run folder was recorded belong to no scene yet: the next run claims
+    them (mark_run_folder)."""
+    marker = _marker(out_dir)
+    scene, made_at = marker.get("scene"), marker.get("run")
+    if not (isinstance(scene, str) and scene and isinstance(made_at, str) and made_at):
+        return None
+    if resolved(Path(made_at)) != resolved(out_dir):
+        return None
+    return Path(scene)
 
 
 # ----------------------------------------------------------------------------- inside a run folder
@@ -221,8 +247,9 @@ def mark_run_folder(out_dir: Path, scene_root: Path) -> None:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     marker = out_dir / RUN_MARKER
-    if not marker.is_file():
-        marker.write_text(json.dumps({"made_by": "pano-pipe", "scene": str(Path(scene_root).resolve())}) + "\n")
+    if not marker.is_file() or run_folder_scene(out_dir) is None:  # new, moved, or from before "run"
+        marker.write_text(json.dumps({"made_by": "pano-pipe", "scene": str(Path(scene_root).resolve()),
+                                      "run": str(out_dir.resolve())}) + "\n")
 
 
 def run_folder_name(scene_name: str, scene_root: Path | None = None) -> str:

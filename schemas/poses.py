@@ -37,10 +37,37 @@ class UprightPairReport(BaseModel):
     runner_up: float = Field(description="Best coarse score at least 5° away: how distinct the pose is.")
 
 
+class PairRecord(BaseModel):
+    """A pair of panoramas the upright solver tried (sfm.upright_global)."""
+
+    a: str
+    b: str
+    inliers: int = Field(description="Inlier matches of the verified pair pose; 0: not verified.")
+    used: bool = Field(description="Kept by the global solve (its yaw and direction agree with the others).")
+
+
+class Attempt(BaseModel):
+    """One method the stage ran (method auto may run several)."""
+
+    method: Literal["rig", "equirect", "upright", "upright-pair"]
+    placed: int = Field(description="Views the method placed (0 when it failed).")
+    seconds: float
+    failure: str | None = Field(default=None, description="Why it failed or was not taken.")
+
+
 class PosesOutput(BaseModel):
-    method: Literal["rig", "equirect", "upright-pair"] = Field(
-        description="What placed the views: COLMAP fed perspective views (rig) or panoramas (equirect), or the "
-                    "upright two-view solver (upright-pair) (docs/poses.md).")
+    method: Literal["rig", "equirect", "upright", "upright-pair"] = Field(
+        description="What placed the views: COLMAP fed perspective views (rig) or panoramas (equirect), the "
+                    "upright N-view solver (upright) or two-view solver (upright-pair) (docs/poses.md).")
+    requested_method: Literal["auto", "rig", "equirect", "upright", "upright-pair"] = Field(
+        default="auto", description="poses.method as set; auto lets the stage choose.")
+    method_reason: str = Field(default="", description="Why this method's result was taken.")
+    attempts: list[Attempt] = Field(default_factory=list, description="Every method run, in order.")
+    pairs: list[PairRecord] = Field(
+        default_factory=list, description="Upright solver: the pairs tried, their inliers, which were kept.")
+    left_out: dict[str, str] = Field(default_factory=dict, description="Views not placed -> why.")
+    residual_deg: float | None = Field(
+        default=None, description="Median angular error of the sparse points' observations (degrees).")
     upright_pair: UprightPairReport | None = Field(default=None, description="The upright-pair solver's figures.")
     working_height: int = Field(description="Panorama height (pixels) features were extracted at.")
     views: list[ViewPose]

@@ -1,2 +1,3 @@
-"""Structure from motion for panoramas: pycolmap reconstruction (reconstruct), perspective rig views
-(rig), and the upright, metric world frame (frame). See docs/poses.md."""
+"""Structure from motion for panoramas: the upright N-view solver for levelled cameras
+(upright_global, on the two-view search of upright_pair), pycolmap reconstruction (reconstruct),
+perspective rig views (rig), and the upright, metric world frame (frame). See docs/poses.md."""

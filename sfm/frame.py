@@ -103,10 +103,18 @@ def upright_rotation(cam_to_world: list[np.ndarray]) -> np.ndarray:
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]) @ level
 
 
-def fit_floor(points: np.ndarray, centres: np.ndarray, seed: int = 0) -> Floor | None:
+def fit_floor(points: np.ndarray, centres: np.ndarray, seed: int = 0, min_depression_deg: float = 0.0
+              ) -> Floor | None:
     """The plane under the cameras holding the most points, its normal within MAX_FLOOR_TILT_DEG of
-    +y, in an upright frame; None when too few points lie below the cameras."""
+    +y, in an upright frame; None when too few points lie below the cameras. With
+    `min_depression_deg`, only points seen at least that far below the horizon from the nearest
+    camera count: a dense cloud's wall points at the cameras' own height form a horizontal band
+    under them that can outnumber the floor's points."""
     below = points[points[:, 1] > centres[:, 1].max()]
+    if min_depression_deg > 0 and len(below):
+        horizontal = np.min(np.linalg.norm(below[:, None, [0, 2]] - centres[None, :, [0, 2]], axis=2), axis=1)
+        drop = below[:, 1] - centres[:, 1].max()
+        below = below[np.degrees(np.arctan2(drop, horizontal)) >= min_depression_deg]
     if len(below) < 10:
         return None
     # inlier band: 1 % of the typical camera-to-point distance (the frame has no unit yet)
@@ -153,7 +161,7 @@ def metric_scale(heights_sfm: np.ndarray, heights_m: np.ndarray, floor: Floor) -
 
 
 def align_to_floor(cam_to_world: dict[str, np.ndarray], points: np.ndarray, heights: dict[str, float],
-                   order: list[str], scale: float | None = None) -> Alignment:
+                   order: list[str], scale: float | None = None, min_depression_deg: float = 0.0) -> Alignment:
     """Upright and metric alignment without known poses; `order` puts the view that defines the
     origin and the forward axis first. The scale puts the cameras `heights` over the floor fitted
     to the points, or is the given `scale` (the floor, where found, is then only measured).
@@ -161,7 +169,7 @@ def align_to_floor(cam_to_world: dict[str, np.ndarray], points: np.ndarray, heig
     names = [v for v in order if v in cam_to_world]
     up = upright_rotation([cam_to_world[v] for v in names])
     centres = np.array([cam_to_world[v][:3, 3] for v in names]) @ up.T
-    floor = fit_floor(points @ up.T, centres)
+    floor = fit_floor(points @ up.T, centres, min_depression_deg=min_depression_deg)
     tilt = None if floor is None else rotation_angle_deg(rotation_between(floor.normal, np.array([0.0, 1.0, 0.0])))
     if scale is not None:
         return Alignment(Similarity(scale, up, -scale * centres[0]), 0.0, "given scale", floor=floor,

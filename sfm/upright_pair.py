@@ -20,7 +20,7 @@ ratio test lost); a fine search over those; the inliers triangulated.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -34,12 +34,18 @@ from sfm.rig import VirtualRig, rotation_about_y
 class UprightPairOptions:
     #: SIFT contrast threshold (OpenCV's default 0.04 leaves too few features on indoor walls)
     contrast_threshold: float = 0.02
+    #: the strongest features kept per panorama: the pair's distance matrices grow with the square
+    max_features: int = 5000
     #: ratio test of the putative matches: lax, the search is robust
     ratio: float = 0.95
     #: at most one putative match per cell of this size (degrees) in either panorama
     cell_deg: float = 2.0
     coarse_step_deg: float = 1.0
     coarse_tau_deg: float = 1.0
+    #: the coarse search scores at most this many putative matches (the closest in descriptor space)
+    coarse_max_matches: int = 800
+    #: the coarse search refines this many peaks of a 3x coarser grid (search_pose_peaks); 0: every pose
+    coarse_peaks: int = 12
     #: guided matching: candidates within this angle of the epipolar plane, ratio test among them
     guided_band_deg: float = 3.0
     guided_ratio: float = 0.8
@@ -86,6 +92,8 @@ class PairResult:
     inliers: int  # guided matches within fine_tau_deg of the fine pose
     residual_deg: np.ndarray  # [inliers] angular epipolar error
     reconstruction: Reconstruction
+    #: [inliers,2] feature indices (into `features` of a and of b) of the inlier matches
+    matches: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))
 
 
 def epipolar_error(b1: np.ndarray, w2: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -107,19 +115,25 @@ def _baselines(phis: np.ndarray) -> np.ndarray:
 
 def score_grid(b1: np.ndarray, b2: np.ndarray, thetas: np.ndarray, phis: np.ndarray, tau: float) -> np.ndarray:
     """[T,P] truncated quadratic score sum(1 - min(e / tau, 1)^2) of the correspondences b1[i] <->
-    b2[i] for every (theta, phi); a match whose rays meet behind a camera scores 0."""
-    c = _baselines(phis)  # [P,3]
+    b2[i] for every (theta, phi); a match whose rays meet behind a camera scores 0. The error is
+    taken as its sine (within 1e-4 of the angle at the tolerances used, a degree or less): no
+    arcsin over the whole grid, in float32, which makes the exhaustive search several times faster."""
+    b1 = np.asarray(b1, np.float32)
+    b2 = np.asarray(b2, np.float32)
+    c = _baselines(phis).astype(np.float32)  # [P,3]
     ac = b1 @ c.T  # [N,P]
     sin_b = np.sqrt(np.maximum(1.0 - ac**2, 1e-12))
+    inv_sin_tau = np.float32(1.0 / np.sin(tau))
     out = np.zeros((len(thetas), len(phis)))
     for i, theta in enumerate(thetas):
-        w2 = b2 @ rotation_about_y(np.degrees(theta)).T
+        w2 = b2 @ rotation_about_y(np.degrees(theta)).T.astype(np.float32)
         num = np.abs(np.cross(b1, w2) @ c.T)
         bc = w2 @ c.T
         ab = np.sum(b1 * w2, axis=1)[:, None]
-        error = np.arcsin(np.clip(np.maximum(num / np.sqrt(np.maximum(1.0 - bc**2, 1e-12)), num / sin_b), 0.0, 1.0))
+        # the larger of the two plane angles: num over the smaller of the two sines
+        ratio = np.minimum(num / np.minimum(np.sqrt(np.maximum(1.0 - bc**2, 1e-12)), sin_b) * inv_sin_tau, 1.0)
         front = (ac - ab * bc > 0) & (ab * ac - bc > 0)
-        out[i] = np.sum(np.where(front, 1.0 - np.minimum(error / tau, 1.0) ** 2, 0.0), axis=0)
+        out[i] = np.sum(np.where(front, 1.0 - ratio**2, 0.0), axis=0, dtype=np.float64)
     return out
 
 
@@ -150,12 +164,51 @@ def search_pose(b1: np.ndarray, b2: np.ndarray, step_deg: float = 1.0, tau_deg: 
     return PairPose(theta, phi, float(scores[i, j]), runner_up)
 
 
+def search_pose_peaks(b1: np.ndarray, b2: np.ndarray, step_deg: float = 1.0, tau_deg: float = 1.0,
+                      peaks: int = 12, factor: int = 3) -> PairPose:
+    """search_pose over every angle, about `factor`^2 times faster: the score on a grid `factor`
+    times coarser (tolerance likewise) finds the `peaks` best local maxima; the full-resolution
+    grid is evaluated only around them (±`factor`+1 steps). The best and the runner-up (best at
+    least 5° away) are those of the evaluated points: the same as the exhaustive search's when
+    the runner-up's peak is among the coarse grid's `peaks` best."""
+    coarse_step = step_deg * factor
+    grid = np.radians(np.arange(0.0, 360.0, coarse_step))
+    coarse = score_grid(b1, b2, grid, grid, np.radians(tau_deg * factor))
+    # local maxima of the wrapped coarse grid
+    neighbours = np.max([np.roll(coarse, (di, dj), axis=(0, 1)) for di in (-1, 0, 1) for dj in (-1, 0, 1)
+                         if di or dj], axis=0)
+    candidates = np.argwhere(coarse >= neighbours)
+    order = np.argsort(-coarse[candidates[:, 0], candidates[:, 1]], kind="stable")[:peaks]
+    span = np.arange(-(factor + 1), factor + 2) * step_deg
+    thetas, phis, scores = [], [], []
+    for i, j in candidates[order]:
+        t = np.radians(i * coarse_step + span)
+        f = np.radians(j * coarse_step + span)
+        sc = score_grid(b1, b2, t, f, np.radians(tau_deg))
+        thetas.append(np.repeat(t, len(f)))
+        phis.append(np.tile(f, len(t)))
+        scores.append(sc.ravel())
+    thetas, phis, scores = np.concatenate(thetas), np.concatenate(phis), np.concatenate(scores)
+    best = int(np.argmax(scores))
+
+    def wrapped(a):
+        return np.abs(np.mod(a + np.pi, 2 * np.pi) - np.pi)
+
+    limit = np.radians(5.0 + 1e-6)  # within 5° is near, as in search_pose
+    far = ~((wrapped(thetas - thetas[best]) <= limit) & (wrapped(phis - phis[best]) <= limit))
+    runner_up = float(scores[far].max()) if far.any() else 0.0
+    theta = float(np.mod(thetas[best] + np.pi, 2 * np.pi) - np.pi)
+    phi = float(np.mod(phis[best] + np.pi, 2 * np.pi) - np.pi)
+    return PairPose(theta, phi, float(scores[best]), runner_up)
+
+
 def features(pano: Panorama, options: UprightPairOptions) -> tuple[np.ndarray, np.ndarray]:
     """Unit bearings [N,3] in the panorama frame and RootSIFT descriptors [N,128] of SIFT features
-    found on the panorama's perspective views (sfm.rig), outside its invalid pixels."""
+    found on the panorama's perspective views (sfm.rig), outside its invalid pixels, strongest
+    (largest SIFT response) first: the first K are the panorama's K strongest."""
     rig = VirtualRig(pano.rgb.shape[0])
     sift = cv2.SIFT_create(contrastThreshold=options.contrast_threshold)
-    dirs, descs = [], []
+    dirs, descs, strength = [], [], []
     bgr = cv2.cvtColor(pano.rgb, cv2.COLOR_RGB2BGR)
     for (image, mask), pano_from_cam in zip(rig.render(bgr, pano.valid), rig.pano_from_cams):
         keypoints, desc = sift.detectAndCompute(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), mask)
@@ -167,9 +220,16 @@ def features(pano: Panorama, options: UprightPairOptions) -> tuple[np.ndarray, n
         dirs.append(rays / np.linalg.norm(rays, axis=1, keepdims=True))
         desc = desc / (desc.sum(axis=1, keepdims=True) + 1e-9)
         descs.append(np.sqrt(desc).astype(np.float32))
+        strength.append(np.array([k.response for k in keypoints]))
     if not dirs:
         return np.zeros((0, 3)), np.zeros((0, 128), np.float32)
-    return np.concatenate(dirs), np.concatenate(descs)
+    order = np.argsort(-np.concatenate(strength), kind="stable")[:options.max_features]
+    return np.concatenate(dirs)[order], np.concatenate(descs)[order]
+
+
+def descriptor_distance(d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
+    """[N1,N2] Euclidean distances of unit RootSIFT descriptors (float32)."""
+    return np.sqrt(np.maximum(2.0 - 2.0 * (d1 @ d2.T), 0.0))
 
 
 def _cells(bearings: np.ndarray, cell_deg: float) -> np.ndarray:
@@ -179,12 +239,24 @@ def _cells(bearings: np.ndarray, cell_deg: float) -> np.ndarray:
     return column * 100000 + np.floor((lat + 90.0) / cell_deg).astype(np.int64)
 
 
+def two_nearest(distance: np.ndarray) -> np.ndarray:
+    """[N,min(2,M)] column indices of each row's smallest and second smallest entry (a partition,
+    not a full sort: the rows hold thousands of candidates)."""
+    if distance.shape[1] <= 2:
+        return np.argsort(distance, axis=1)
+    two = np.argpartition(distance, 1, axis=1)[:, :2]
+    first = np.take_along_axis(distance, two[:, :1], axis=1)[:, 0]
+    swap = np.take_along_axis(distance, two[:, 1:], axis=1)[:, 0] < first
+    two[swap] = two[swap][:, ::-1]
+    return two
+
+
 def putative_matches(b1: np.ndarray, b2: np.ndarray, distance: np.ndarray, options: UprightPairOptions) -> np.ndarray:
     """[M,2] index pairs: nearest neighbours passing the ratio test, then the best (smallest
     distance) of those in each cell of either sphere."""
     if distance.shape[1] < 2:
         return np.zeros((0, 2), int)
-    nearest = np.argsort(distance, axis=1)[:, :2]
+    nearest = two_nearest(distance)
     d = np.take_along_axis(distance, nearest, axis=1)
     pairs = np.column_stack([np.arange(len(b1)), nearest[:, 0]])[d[:, 0] < options.ratio * d[:, 1]]
     pairs = pairs[np.argsort(distance[pairs[:, 0], pairs[:, 1]], kind="stable")]
@@ -196,18 +268,29 @@ def putative_matches(b1: np.ndarray, b2: np.ndarray, distance: np.ndarray, optio
 
 
 def guided_matches(b1: np.ndarray, b2: np.ndarray, distance: np.ndarray, pose: PairPose,
-                   options: UprightPairOptions, chunk: int = 512) -> np.ndarray:
+                   options: UprightPairOptions, chunk: int = 1024) -> np.ndarray:
     """[M,2] index pairs: for each feature of a, the nearest feature of b among those within
     guided_band_deg of its epipolar plane (in front of both cameras), if it passes a ratio test
     against the second nearest there and is close enough."""
-    w2 = b2 @ pose.a_from_b[:3, :3].T
-    c = pose.baseline
-    band = np.radians(options.guided_band_deg)
+    w2 = (b2 @ pose.a_from_b[:3, :3].T).astype(np.float32)
+    c = pose.baseline.astype(np.float32)
+    # epipolar_error for every pair at once, as matrix products: |b1.(w2 x c)| over the smaller of
+    # |w2 x c| and |b1 x c| is the sine of the larger plane angle
+    normals = np.cross(w2, c)
+    sin_a = np.linalg.norm(normals, axis=1)
+    bc = w2 @ c
+    sin_band = np.float32(np.sin(np.radians(options.guided_band_deg)))
     out = []
     for start in range(0, len(b1), chunk):
-        error, front = epipolar_error(b1[start:start + chunk, None], w2[None], c)
-        d = np.where(front & (error < band), distance[start:start + chunk], np.inf)
-        nearest = np.argsort(d, axis=1)[:, :2]
+        a = b1[start:start + chunk].astype(np.float32)
+        ac = a @ c
+        sin_b = np.sqrt(np.maximum(1.0 - ac**2, 1e-12))
+        num = np.abs(a @ normals.T)
+        ab = a @ w2.T
+        near = num < sin_band * np.minimum(sin_a[None], sin_b[:, None])
+        front = (ac[:, None] - ab * bc[None] > 0) & (ab * ac[:, None] - bc[None] > 0)
+        d = np.where(near & front, distance[start:start + chunk], np.inf)
+        nearest = two_nearest(d)
         v = np.take_along_axis(d, nearest, axis=1)
         if v.shape[1] < 2:
             v = np.column_stack([v, np.full(len(v), np.inf)])
@@ -231,13 +314,27 @@ def relative_pose(a: Panorama, b: Panorama, options: UprightPairOptions | None =
     options = options or UprightPairOptions()
     f1, d1 = features(a, options)
     f2, d2 = features(b, options)
+    return pose_from_features(a, b, (f1, d1), (f2, d2), options)
+
+
+def pose_from_features(a: Panorama, b: Panorama, feat_a: tuple[np.ndarray, np.ndarray],
+                       feat_b: tuple[np.ndarray, np.ndarray], options: UprightPairOptions) -> PairResult | None:
+    """relative_pose on features already extracted (`features`): the N-view solver extracts each
+    panorama's once."""
+    (f1, d1), (f2, d2) = feat_a, feat_b
     if len(f1) < 2 or len(f2) < 2:
         return None
-    distance = np.sqrt(np.maximum(2.0 - 2.0 * (d1 @ d2.T), 0.0))  # RootSIFT descriptors are unit
+    distance = descriptor_distance(d1, d2)
     pairs = putative_matches(f1, f2, distance, options)
     if len(pairs) < 8:
         return None
-    coarse = search_pose(f1[pairs[:, 0]], f2[pairs[:, 1]], options.coarse_step_deg, options.coarse_tau_deg)
+    # the putative matches are sorted by descriptor distance: the search takes the best ones
+    top = pairs[:options.coarse_max_matches]
+    if options.coarse_peaks:
+        coarse = search_pose_peaks(f1[top[:, 0]], f2[top[:, 1]], options.coarse_step_deg, options.coarse_tau_deg,
+                                   options.coarse_peaks)
+    else:
+        coarse = search_pose(f1[top[:, 0]], f2[top[:, 1]], options.coarse_step_deg, options.coarse_tau_deg)
     if coarse.score < options.min_distinct * coarse.runner_up:
         return None
     guided = guided_matches(f1, f2, distance, coarse, options)
@@ -253,7 +350,7 @@ def relative_pose(a: Panorama, b: Panorama, options: UprightPairOptions | None =
     if inliers.sum() < options.min_inliers:
         return None
     points = triangulate(g1[inliers], w2[inliers], pose.baseline)
-    colors = np.array([_color(a, x) for x in g1[inliers]], dtype=np.uint8).reshape(-1, 3)
+    colors = np.array([bearing_color(a, x) for x in g1[inliers]], dtype=np.uint8).reshape(-1, 3)
     residual = np.degrees(error[inliers])
     # equirect pixels per radian, to report the angular error where COLMAP reports pixels
     px = a.rgb.shape[1] / (2.0 * np.pi) * np.radians(float(residual.mean()) if len(residual) else 0.0)
@@ -262,10 +359,10 @@ def relative_pose(a: Panorama, b: Panorama, options: UprightPairOptions | None =
         reprojection_error={a.name: px, b.name: px},
         observations={a.name: int(inliers.sum()), b.name: int(inliers.sum())},
         points=points, colors=colors, track_length=np.full(len(points), 2), verified_pairs=1)
-    return PairResult(pose, len(pairs), len(guided), int(inliers.sum()), residual, recon)
+    return PairResult(pose, len(pairs), len(guided), int(inliers.sum()), residual, recon, guided[inliers])
 
 
-def _color(pano: Panorama, bearing: np.ndarray) -> np.ndarray:
+def bearing_color(pano: Panorama, bearing: np.ndarray) -> np.ndarray:
     h, w = pano.rgb.shape[:2]
     col, row = angles_to_pixel(*dirs_to_angles(bearing), h, w)
     return pano.rgb[int(np.clip(round(float(row)), 0, h - 1)), int(round(float(col))) % w]

@@ -69,6 +69,12 @@ def simulate_command(
     with_depth: bool = typer.Option(
         False, "--with-depth", help="Also supply the gt depth as depth/ input (train views)."
     ),
+    walk: bool = typer.Option(
+        False, "--walk", help="Train cameras along a walk through the rooms (a chain; presets with doorways)."
+    ),
+    tripod_height: float | None = typer.Option(
+        None, "--tripod-height", help="Every camera at this height (m), as one tripod takes a capture."
+    ),
     profile: bool = typer.Option(False, "--profile", help="Print the time each effect / phase took."),
 ) -> SimulationResult:
     """Write a synthetic indoor scene folder with exact ground truth (depth, layout, floor plan)."""
@@ -87,6 +93,8 @@ def simulate_command(
         aa_samples=aa_samples,
         with_layout=with_layout,
         with_depth=with_depth,
+        walk=walk,
+        tripod_height=tripod_height,
     )
     console.print(
         f"wrote {escape(str(result.manifest_path))} ({len(result.views)} views, {height}x{2 * height}, "

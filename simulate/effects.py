@@ -35,6 +35,7 @@ MATERIAL_RGB = {
     "floor_carpet": np.array([0.45, 0.50, 0.58]),
     "ceiling": np.array([0.92, 0.91, 0.88]),
     "paint": np.array([0.80, 0.76, 0.68]),
+    "bare": np.array([0.84, 0.82, 0.78]),  # paint without the `detail` effect's blotches: low texture
     "wallpaper": np.array([0.70, 0.74, 0.66]),
 }
 

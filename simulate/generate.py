@@ -215,12 +215,15 @@ def generate_scene(
     aa_samples: int = 2,
     with_layout: bool = False,
     with_depth: bool = False,
+    walk: bool = False,
+    tripod_height: float | None = None,
 ) -> SimulationResult:
     """Simulate a scene and write its folder atomically (a sibling temp folder, renamed on success).
 
     `views` train and `test_views` test panoramas of `height` x 2`height` pixels. `effects`:
     'all', 'none', a comma-separated list or a set of names from EFFECTS ('all' for the demo
-    preset means its noise-free set). Raises ValueError on bad arguments.
+    preset means its noise-free set). `walk`: train cameras along a walk through the rooms (a
+    chain); `tripod_height`: every camera at that height (m). Raises ValueError on bad arguments.
     """
     t_start = time.perf_counter()
     _check_args(preset, views, test_views, height, seed, aa_samples)
@@ -236,7 +239,10 @@ def generate_scene(
     t0 = time.perf_counter()
     rngs = _rngs(seed)
     world = build_world(preset, rngs["room"])
-    cams = place_cameras(world, int(views), int(test_views), rngs["cameras"])
+    if tripod_height is not None and not 0.3 <= tripod_height <= 0.9 * world.ceiling_height:
+        raise ValueError(f"tripod height must be 0.3 m to 90 % of the ceiling height, got {tripod_height}")
+    cams = place_cameras(world, int(views), int(test_views), rngs["cameras"], walk=walk,
+                         tripod_height=tripod_height)
     timings["scene"] = time.perf_counter() - t0
     boxes: list[Box] = []
     if "furniture" in fx:

@@ -36,7 +36,7 @@ __all__ = [
     "PRESET_NAMES",
 ]
 
-PRESET_NAMES = ("cuboid", "l-shape", "two-rooms", "demo")
+PRESET_NAMES = ("cuboid", "l-shape", "two-rooms", "demo", "suite")
 
 LIGHT_DROP = 0.45  # lamps hang this far below the ceiling (m)
 WALL_MARGIN = 0.5  # cameras keep this far from walls (m)
@@ -215,6 +215,9 @@ def build_world(preset: str, rng: np.random.Generator) -> World:
             camera_regions = [[(x0, z0, x0 + w - cw, z0 + d - cd)]]
         else:
             camera_regions = [rects]
+    elif preset == "suite":
+        rooms, rects, doorways = _suite(rng, ceiling)
+        camera_regions = [[r] for r in rects]
     else:  # two-rooms
         wa, da = _round(rng.uniform(3.5, 5.0)), _round(rng.uniform(3.5, 5.0))
         wb, db = _round(rng.uniform(3.0, 4.5)), _round(rng.uniform(3.0, 4.5))
@@ -260,6 +263,11 @@ def build_world(preset: str, rng: np.random.Generator) -> World:
             wall.material = "paint"
         else:
             wall.material = "wallpaper" if (i + start) % 2 == 0 else "paint"
+    if preset == "suite":
+        # real rooms: mostly painted walls, a third of them bare (no fine detail: nothing to match)
+        for i, wall in enumerate(walls):
+            if wall.kind == "wall":
+                wall.material = ("wallpaper", "paint", "bare")[(i + start) % 3]
     if preset == "demo":
         floor_material = "wood"
     else:
@@ -281,6 +289,37 @@ def build_world(preset: str, rng: np.random.Generator) -> World:
         outline=outline,
         camera_regions=camera_regions,
     )
+
+
+def _suite(rng: np.random.Generator, ceiling: float):
+    """Three rooms in a row along +x (a living room, a dining room, a kitchen), each joined to the
+    next by an opening 1.0-1.6 m wide: a real-estate capture's open plan, seen from room to room
+    only through the openings."""
+    widths = [_round(rng.uniform(4.0, 5.5)), _round(rng.uniform(3.5, 4.5)), _round(rng.uniform(3.0, 4.5))]
+    depths = [_round(rng.uniform(3.5, 5.0)), _round(rng.uniform(3.5, 4.5)), _round(rng.uniform(3.0, 4.5))]
+    rects = []
+    x, z0 = 0.0, 0.0
+    for k, (w, d) in enumerate(zip(widths, depths)):
+        if k:  # overlap the previous room's z range by at least 2.5 m
+            pz0, pz1 = rects[-1][1], rects[-1][3]
+            lo, hi = pz0 + 2.5 - d, pz1 - 2.5
+            z0 = _round(rng.uniform(lo, hi)) if hi > lo else pz0
+        rects.append((x, z0, x + w, z0 + d))
+        x += w
+    zs = [r[1] for r in rects] + [r[3] for r in rects]
+    sx, sz = x / 2, (min(zs) + max(zs)) / 2
+    rects = [(r[0] - sx, r[1] - sz, r[2] - sx, r[3] - sz) for r in rects]
+    names = ("living", "dining", "kitchen")
+    rooms = [Room(n, _rect_poly(*r), [r]) for n, r in zip(names, rects)]
+    doorways = []
+    for k in range(2):
+        ra, rb = rects[k], rects[k + 1]
+        shared_z0, shared_z1 = max(ra[1], rb[1]), min(ra[3], rb[3])
+        width = _round(rng.uniform(1.0, 1.6))
+        dz0 = _round(rng.uniform(shared_z0 + 0.3, max(shared_z0 + 0.3, shared_z1 - 0.3 - width)))
+        top = -_round(rng.uniform(2.0, min(2.2, ceiling - 0.25)))
+        doorways.append(Doorway(np.array([ra[2], dz0]), np.array([ra[2], dz0 + width]), (k, k + 1), top))
+    return rooms, rects, doorways
 
 
 # ----------------------------------------------------------------------------- cameras
@@ -320,16 +359,45 @@ def _in_hull(p: np.ndarray, pts: np.ndarray) -> bool:
     return bool(hull.buffer(1e-9).contains(Point(*p)))
 
 
-def place_cameras(world: World, n_train: int, n_test: int, rng: np.random.Generator) -> list[Camera]:
-    """Train cameras spread over the free space; test cameras near them, inside their hull when possible."""
+def _walk(world: World, n: int, rng: np.random.Generator) -> np.ndarray:
+    """[n,2] train positions along a walk through the rooms (room centres and doorway centres
+    joined), evenly spaced with a little sideways jitter: each panorama overlaps its neighbours
+    on the walk most, the far ones little or not at all (a chain)."""
+    stops = [np.mean(np.array(world.camera_regions[0][0]).reshape(2, 2), axis=0)]
+    for k, dw in enumerate(world.doorways):
+        stops.append((dw.a + dw.b) / 2)
+        stops.append(np.mean(np.array(world.camera_regions[k + 1][0]).reshape(2, 2), axis=0))
+    stops = np.array(stops)
+    seg = np.linalg.norm(np.diff(stops, axis=0), axis=1)
+    along = np.concatenate([[0.0], np.cumsum(seg)])
+    out = np.zeros((n, 2))
+    for i, s in enumerate(np.linspace(0.0, along[-1], n)):
+        k = min(int(np.searchsorted(along, s, side="right")) - 1, len(seg) - 1)
+        p = stops[k] + (s - along[k]) / seg[k] * (stops[k + 1] - stops[k])
+        p = p + rng.uniform(-0.35, 0.35, 2)
+        for dw in world.doorways:  # keep clear of the wall planes at the openings
+            if abs(p[0] - dw.a[0]) < 0.4:
+                p[0] = dw.a[0] + (0.4 if p[0] >= dw.a[0] else -0.4)
+                p[1] = np.clip(p[1], min(dw.a[1], dw.b[1]) - 0.3, max(dw.a[1], dw.b[1]) + 0.3)
+        out[i] = p
+    return out
+
+
+def place_cameras(world: World, n_train: int, n_test: int, rng: np.random.Generator,
+                  walk: bool = False, tripod_height: float | None = None) -> list[Camera]:
+    """Train cameras spread over the free space (or, with `walk`, along a walk through the rooms,
+    for presets with doorways); test cameras near them, inside their hull when possible. With
+    `tripod_height` every camera stands that high (a capture from one tripod), else 1.2-1.7 m."""
     regions = world.camera_regions
     margin = WALL_MARGIN
+    if walk and not world.doorways:
+        raise ValueError("a walk needs rooms joined by doorways (presets two-rooms, suite)")
     # Train: farthest-point sampling per room, rooms taken round robin.
     per_room = [[] for _ in regions]
     for i in range(n_train):
         per_room[i % len(regions)].append(i)
     train_xz = np.zeros((n_train, 2))
-    for ri, idxs in enumerate(per_room):
+    for ri, idxs in enumerate([] if walk else per_room):
         if not idxs:
             continue
         cands = _sample_in_rects(rng, regions[ri], 400, margin)
@@ -340,6 +408,8 @@ def place_cameras(world: World, n_train: int, n_test: int, rng: np.random.Genera
         sel = _farthest_points(cands, len(idxs), rng)
         for j, s in zip(idxs, sel):
             train_xz[j] = cands[s]
+    if walk:
+        train_xz = _walk(world, n_train, rng)
     # Test: near a train camera (0.35..1.0 m), at least 0.3 m from every train camera,
     # inside the train cameras' convex hull when there is one.
     test_xz = np.zeros((n_test, 2))
@@ -370,6 +440,8 @@ def place_cameras(world: World, n_train: int, n_test: int, rng: np.random.Genera
     for split, xz in (("train", train_xz), ("test", test_xz)):
         for i, p in enumerate(xz):
             h = float(np.round(rng.uniform(lo_h, hi_h), 4))
+            if tripod_height is not None:
+                h = float(tripod_height)
             yaw = float(rng.uniform(-np.pi, np.pi))
             pos = np.array([p[0], -h, p[1]])
             cams.append(Camera(f"{split}_{i:02d}", split, pos, h, yaw))

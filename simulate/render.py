@@ -52,11 +52,13 @@ class _Materials:
         for s in (FLOOR, CEILING):
             coef[3 * s, 0, 0] = 1.0  # u = x
             coef[3 * s, 1, 2] = 1.0  # v = z
+        bare = np.zeros(nsurf, bool)
         off = 0.0  # running arc length keeps the pattern continuous around corners
         for k, wall in enumerate(world.walls):
             s = WALL0 + k
             mat = wall.material
             rgb[s] = effects.MATERIAL_RGB[mat]
+            bare[s] = mat == "bare"
             kind[s] = kinds.index("wallpaper" if mat == "wallpaper" else "plain")
             ex, ez = (wall.b - wall.a) / wall.length
             coef[3 * s, 0] = (ex, 0.0, ez, off - ex * wall.a[0] - ez * wall.a[1])
@@ -70,6 +72,7 @@ class _Materials:
                 coef[3 * s + a, 0, i0] = 1.0
                 coef[3 * s + a, 1, i1] = 1.0
         self.rgb = rgb
+        self.bare = bare
         self.kind = kind
         self.coef = coef
         self.boxes = boxes
@@ -98,7 +101,8 @@ def _colour(
         timings["texture"] = timings.get("texture", 0.0) + time.perf_counter() - t0
     if "detail" in fx:
         t0 = time.perf_counter()
-        albedo = effects.detail(hits.sid, _uv(hits, points, m), albedo)
+        detailed = effects.detail(hits.sid, _uv(hits, points, m), albedo)
+        albedo = np.where(m.bare[hits.sid][:, None], albedo, detailed)
         timings["detail"] = timings.get("detail", 0.0) + time.perf_counter() - t0
     if "shading" in fx:
         t0 = time.perf_counter()

@@ -1,8 +1,9 @@
 """poses: camera-to-world poses recovered from the panoramas themselves (structure from motion).
 
-A scene calls for it when some view has no pose in scene.json. pycolmap
-reconstructs every panorama (sfm.reconstruct), or with method upright-pair two
-levelled panoramas are posed by sfm.upright_pair; the reconstruction is turned
+A scene calls for it when some view has no pose in scene.json. By default
+(method auto) the upright N-view solver (sfm.upright_global) places levelled
+panoramas, and pycolmap (sfm.reconstruct) is run where it leaves views out;
+the artifact says which method was taken and why. The reconstruction is turned
 upright and metric (sfm.frame): gravity from the cameras' mean down axis, scale
 from the camera heights over the floor plane under them, or the frame of the
 views that have poses. Downstream stages see the scene with the recovered
@@ -12,7 +13,11 @@ out of it. See docs/poses.md.
 
 from __future__ import annotations
 
+import os
 import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -25,11 +30,13 @@ from runfs.errors import PanoError
 from runfs.limits import image_size
 from schemas.scene_loader import valid_mask
 from pipeline.stage import Loaded, StageContext
-from schemas.poses import PosesOutput, UprightPairReport, ViewPose
+from schemas.poses import Attempt, PairRecord, PosesOutput, UprightPairReport, ViewPose
 from schemas.scene import Scene
-from sfm.frame import align_to_floor, align_to_known
+from sfm.frame import Alignment, align_to_floor, align_to_known
 from sfm.reconstruct import STEPS as SFM_STEPS
 from sfm.reconstruct import Panorama, Reconstruction, SfmOptions, reconstruct
+from sfm.upright_global import GlobalResult, UprightGlobalOptions
+from sfm.upright_global import solve as solve_upright
 from sfm.upright_pair import PairResult, relative_pose
 from stages.cloud_io import write_ply
 
@@ -39,24 +46,35 @@ PLY_NAME = "points.ply"
 DRAWING_NAME = "cameras.png"
 
 
+Method = Literal["auto", "upright", "equirect", "rig", "upright-pair"]
+
+#: Working heights when poses.working_height is not set: the upright solver needs the detail of
+#: 1024 rows on real pairs metres apart (docs/poses.md); COLMAP's methods are tuned at 512.
+DEFAULT_HEIGHT = {"upright": 1024, "upright-pair": 1024, "equirect": 512, "rig": 512}
+
+
 class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    method: Literal["rig", "equirect", "upright-pair"] = Field(
-        default="equirect", description="Feed COLMAP the panoramas with its EQUIRECTANGULAR camera (equirect), "
-                                        "or perspective views of each as a rig (rig: more points, 8x slower); "
-                                        "upright-pair: two levelled panoramas at one camera height, without "
-                                        "COLMAP, for pairs too far apart for it; docs/poses.md.")
-    working_height: int = Field(
-        default=512, ge=64, le=4096, description="Panoramas are resampled to this height (never up) for SfM.")
-    max_features: int = Field(default=4096, ge=100, description="SIFT features per image at most.")
-    min_matches: int = Field(default=15, ge=5, description="Verified matches a pair of images needs to count.")
+    method: Method = Field(
+        default="auto", description="auto: the upright solver, COLMAP (equirect) where it places fewer views; "
+                                    "upright: N levelled panoramas, pairs solved with the camera's gravity; "
+                                    "equirect: COLMAP on the panoramas (EQUIRECTANGULAR camera); rig: COLMAP on "
+                                    "perspective views of each (more points, 8x slower); upright-pair: exactly "
+                                    "two levelled panoramas; docs/poses.md.")
+    working_height: int | None = Field(
+        default=None, ge=64, le=4096, description="Panoramas are resampled to this height (never up); default "
+                                                  "1024 for the upright solvers, 512 for COLMAP.")
+    max_features: int = Field(default=4096, ge=100, description="SIFT features per image at most (COLMAP).")
+    min_matches: int = Field(default=15, ge=5, description="Verified matches a pair of images needs to count "
+                                                           "(COLMAP).")
     default_camera_height: float = Field(
         default=1.6, gt=0, le=100, description="Camera height (m) for views without camera_height in scene.json: "
                                                "it sets the metric scale when no view has a pose.")
-    threads: int | None = Field(default=None, ge=1, description="CPU threads for COLMAP (default: all).")
+    threads: int | None = Field(default=None, ge=1,
+                                description="CPU threads for COLMAP and the upright solver (default: all).")
     seed: int = Field(default=0, ge=0, le=2**31 - 1,
-                      description="Random seed of COLMAP (RANSAC, mapping) and of the floor fit.")
+                      description="Random seed of COLMAP (RANSAC, mapping), the upright solver and the floor fit.")
 
 
 def skip_reason(scene: Scene, params: Params) -> str | None:
@@ -79,58 +97,191 @@ def complete_scene(scene: Scene, artifact: Loaded) -> Scene:
 def _panoramas(ctx: StageContext, height: int) -> list[Panorama]:
     scene = ctx.scene
     out = []
-    for view in ctx.track(scene.views, "loading panoramas"):
+    for view in ctx.track(scene.views, f"loading panoramas ({2 * height}x{height})"):
         rgb = read_rgb(scene.image_path(view), (height, 2 * height))
         out.append(Panorama(view.name, (rgb * 255.0 + 0.5).astype(np.uint8),
                             valid_mask(scene, view, height, 2 * height)))
     return out
 
 
-def _working_height(scene: Scene, params: Params) -> int:
+def _working_height(scene: Scene, params: Params, method: str) -> int:
     heights = []
+    wanted = params.working_height or DEFAULT_HEIGHT[method]
     for view in scene.views:
         size = image_size(scene.image_path(view))
-        heights.append(size[0] if size else params.working_height)
-    return min(params.working_height, *heights)
+        heights.append(size[0] if size else wanted)
+    return min(wanted, *heights)
+
+
+@dataclass
+class _Solved:
+    """One method's result, made upright and metric."""
+
+    method: str
+    height: int
+    result: Reconstruction
+    alignment: Alignment | None = None
+    failure: str | None = None
+    seconds: float = 0.0
+    pair: PairResult | None = None
+    solve: GlobalResult | None = None
+
+    @property
+    def placed(self) -> int:
+        return len(self.result.cam_from_world) if self.failure is None else 0
+
+
+class PosesFailure(Exception):
+    """A method could not place the scene (the message says why, without the file)."""
 
 
 def run(ctx: StageContext) -> PosesOutput:
     scene, p = ctx.scene, ctx.params
-    height = _working_height(scene, p)
-    panoramas = _panoramas(ctx, height)
     views = scene.views
-    pair = None
-    if p.method == "upright-pair":
-        if len(panoramas) != 2:
-            raise PanoError(scene.root, f"poses.method=upright-pair places two panoramas, "
-                                        f"the scene has {len(panoramas)}")
-        result, pair = _upright_pair(panoramas)
-    else:
-        result = _colmap(panoramas, p)
-    if len(result.cam_from_world) < 2:
-        if result.verified_pairs == 0:
-            raise PanoError(scene.root, f"no two of the {len(views)} panoramas share content that structure from "
-                                        "motion can match; poses need overlapping panoramas (docs/poses.md)")
-        raise PanoError(scene.root, f"structure from motion placed fewer than two panoramas "
-                                    f"({result.verified_pairs} matched pairs); give poses in scene.json")
-    registered = [v for v in views if v.name in result.cam_from_world]
-    missing = [v.name for v in views if v.name not in result.cam_from_world]
-    if missing:
-        ctx.warn(f"structure from motion could not place {', '.join(missing)}: left out of the later stages")
-    if sum(v.split == "train" for v in registered) < 2:
-        raise PanoError(scene.root, f"structure from motion placed {len(registered)} panoramas, fewer than two of "
-                                    f"them train views (unplaced: {', '.join(missing)})")
+    if p.method == "upright-pair" and len(views) != 2:
+        raise PanoError(scene.root, f"poses.method=upright-pair places two panoramas, the scene has {len(views)}; "
+                                    "poses.method=upright places any number")
+    loaded: dict[int, list[Panorama]] = {}
 
+    def attempt(method: str) -> _Solved:
+        height = _working_height(scene, p, method)
+        if height not in loaded:
+            loaded[height] = _panoramas(ctx, height)
+        t0 = time.perf_counter()
+        solved = _solve(method, loaded[height], p, height)
+        if solved.failure is None:
+            try:
+                solved.alignment = _align(ctx, solved.result, p, method)
+            except PosesFailure as e:
+                solved.failure = str(e)
+        solved.seconds = time.perf_counter() - t0
+        return solved
+
+    if p.method == "auto":
+        chosen, attempts, reason = _auto(attempt, len(views))
+    else:
+        chosen = attempt(p.method)
+        attempts, reason = [chosen], "asked for (poses.method)"
+    if chosen.failure is not None:
+        raise PanoError(scene.root, _failure_message(attempts, p.method, len(views)))
+    return _output(ctx, chosen, attempts, reason)
+
+
+def _auto(attempt: Callable[[str], _Solved], n: int) -> tuple[_Solved, list[_Solved], str]:
+    """The upright solver first (levelled 360° cameras, wide baselines); COLMAP's incremental
+    mapper where the upright solver left views out or failed; the result placing more views,
+    and on a tie the upright one (its residual is the smaller on levelled cameras)."""
+    upright = attempt("upright")
+    if upright.failure is None and upright.placed == n:
+        return upright, [upright], f"the upright solver placed all {n} views"
+    colmap = attempt("equirect")
+    attempts = [upright, colmap]
+    ok = [s for s in attempts if s.failure is None]
+    if not ok:
+        return upright, attempts, ""
+    best = max(ok, key=lambda s: (s.placed, s.method == "upright"))
+    other = colmap if best is upright else upright
+    why = other.failure or f"it placed {other.placed} of {n}"
+    return best, attempts, (f"{best.method} placed {best.placed} of {n} views; {other.method}: {why}")
+
+
+def _failure_message(attempts: list[_Solved], method: str, n: int) -> str:
+    """One line: why no method placed the views, and which method might."""
+    # COLMAP's verification is the stricter (the upright pair search can return a confident pose for
+    # panoramas of different rooms, docs/poses.md): where it ran, it says whether anything is shared
+    judges = [s for s in attempts if s.method in ("equirect", "rig")] or attempts
+    verified = max(s.result.verified_pairs for s in judges)
+    if verified == 0:
+        text = (f"no two of the {n} panoramas share content that structure from motion can match; poses need "
+                "overlapping panoramas (docs/poses.md)")
+    elif len(attempts) == 1:
+        text = f"poses.method={method} could not place the panoramas: {attempts[0].failure}"
+    else:
+        text = "; ".join(f"{s.method}: {s.failure}" for s in attempts)
+        text = f"no method placed the panoramas ({text})"
+    # the method not tried that likely works: COLMAP finds nothing between levelled panoramas metres
+    # apart (zind_pair), the upright solver nothing between tilted ones
+    hint = {"equirect": "upright (levelled panoramas far apart)", "rig": "upright (levelled panoramas far apart)",
+            "upright": "equirect (panoramas not levelled)", "upright-pair": "equirect (panoramas not levelled)"}
+    if method in hint:
+        text += f"; try --set poses.method={hint[method]}"
+    if verified > 0:
+        text += ("; or " if method in hint else "; ") + "give poses in scene.json"
+    return text
+
+
+def _solve(method: str, panoramas: list[Panorama], p: Params, height: int) -> _Solved:
+    threads = p.threads or os.cpu_count() or 1
+    if method == "upright-pair":
+        pair = relative_pose(*panoramas)
+        if pair is None:
+            return _Solved(method, height, _empty(0), failure="no distinct upright pose between the two panoramas")
+        return _Solved(method, height, pair.reconstruction, pair=pair)
+    if method == "upright":
+        options = UprightGlobalOptions(seed=p.seed, threads=threads)
+        with make_progress() as bar:
+            tasks: dict[str, int] = {}
+
+            def progress(step: str, done: int, total: int) -> None:
+                if step not in tasks:
+                    tasks[step] = bar.add_task(f"upright solver: {step}", total=total)
+                bar.update(tasks[step], completed=done)
+
+            try:
+                solved = solve_upright(panoramas, options, progress=progress)
+            except np.linalg.LinAlgError as e:  # a degenerate graph: a failure of the method, not of the run
+                return _Solved(method, height, _empty(0), failure=f"the global solve is degenerate ({e})")
+        out = _Solved(method, height, solved.reconstruction, solve=solved)
+        if len(solved.reconstruction.cam_from_world) < 2:
+            out.failure = ("no verified pair of panoramas" if solved.reconstruction.verified_pairs == 0 else
+                           "its pairs do not agree on one placement")
+        return out
+    result = _colmap(panoramas, p, method)
+    out = _Solved(method, height, result)
+    if len(result.cam_from_world) < 2:
+        out.failure = (f"COLMAP placed fewer than two panoramas ({result.verified_pairs} matched pairs)"
+                       if result.verified_pairs else "no matched pair of panoramas")
+    return out
+
+
+#: The upright solver's cloud is dense at the cameras' height (the rig's horizon views): its floor
+#: is looked for only among points seen this far below the horizon (sfm.frame.fit_floor).
+FLOOR_DEPRESSION_DEG = {"upright": 15.0, "upright-pair": 0.0, "equirect": 0.0, "rig": 0.0}
+
+
+def _align(ctx: StageContext, result: Reconstruction, p: Params, method: str) -> Alignment:
+    """Upright and metric: the frame of the given poses, else the floor and camera heights."""
+    views = ctx.scene.views
+    registered = [v for v in views if v.name in result.cam_from_world]
+    if sum(v.split == "train" for v in registered) < 2:
+        missing = [v.name for v in views if v.name not in result.cam_from_world]
+        raise PosesFailure(f"placed {len(registered)} panoramas, fewer than two of them train views "
+                           f"(unplaced: {', '.join(missing)})")
     cam_to_world = {name: np.linalg.inv(m) for name, m in result.cam_from_world.items()}
     known = {v.name: v.pose_matrix for v in registered if v.pose is not None}
     heights = {v.name: v.camera_height or p.default_camera_height for v in views}
     order = [v.name for v in views]
     try:
-        alignment = (align_to_known(cam_to_world, known, result.points, heights, order) if known
-                     else align_to_floor(cam_to_world, result.points, heights, order))
+        return (align_to_known(cam_to_world, known, result.points, heights, order) if known
+                else align_to_floor(cam_to_world, result.points, heights, order,
+                                    min_depression_deg=FLOOR_DEPRESSION_DEG[method]))
     except ValueError as e:
-        raise PanoError(scene.root, f"cannot make the poses metric: {e}; give camera poses in scene.json") from None
-    if not known and not any(v.camera_height for v in views):
+        raise PosesFailure(f"cannot make the poses metric: {e}") from None
+
+
+def _output(ctx: StageContext, chosen: _Solved, attempts: list[_Solved], reason: str) -> PosesOutput:
+    scene, p = ctx.scene, ctx.params
+    views = scene.views
+    result, alignment = chosen.result, chosen.alignment
+    cam_to_world = {name: np.linalg.inv(m) for name, m in result.cam_from_world.items()}
+    left_out = dict(chosen.solve.left_out) if chosen.solve is not None else {}
+    for v in views:
+        if v.name not in cam_to_world:
+            left_out.setdefault(v.name, "not registered by COLMAP")
+    if left_out:
+        ctx.warn("could not place " + "; ".join(f"{k} ({why})" for k, why in left_out.items())
+                 + ": left out of the later stages")
+    if alignment.source == "floor" and not any(v.camera_height for v in views):
         ctx.warn(f"no camera_height in scene.json: the scale assumes {p.default_camera_height:g} m for every camera")
     transform = alignment.transform
 
@@ -150,38 +301,57 @@ def run(ctx: StageContext) -> PosesOutput:
     points = transform.points(result.points)
     write_ply(ctx.out_dir / PLY_NAME, points, result.colors / 255.0, np.zeros_like(points))
     draw_cameras(ctx.out_dir / DRAWING_NAME, points, {v.view: np.asarray(v.pose) for v in out_views if v.registered})
-    report = None
+    report = residual = None
+    pair = chosen.pair
     if pair is not None:
         r = pair.residual_deg
+        residual = float(np.median(r))
         report = UprightPairReport(
             yaw_deg=float(np.degrees(pair.pose.theta)), direction_deg=float(np.degrees(pair.pose.phi)),
             putative_matches=pair.putative, guided_matches=pair.guided, inliers=pair.inliers,
             residual_median_deg=float(np.median(r)), residual_rms_deg=float(np.sqrt(np.mean(r**2))),
             score=pair.pose.score, runner_up=pair.pose.runner_up)
+    pairs = []
+    if chosen.solve is not None:
+        residual = chosen.solve.residual_deg
+        pairs = [PairRecord(a=a, b=b, inliers=n, used=used) for a, b, n, used in chosen.solve.pairs]
+    elif result.reprojection_error:  # COLMAP: pixels of the working panorama to degrees
+        residual = float(np.median(list(result.reprojection_error.values()))) * 360.0 / (2 * chosen.height)
     return PosesOutput(
-        method=p.method, upright_pair=report, working_height=height, views=out_views, frame=alignment.source,
+        method=chosen.method, requested_method=p.method, method_reason=reason,
+        attempts=[Attempt(method=s.method, placed=s.placed, seconds=s.seconds, failure=s.failure) for s in attempts],
+        pairs=pairs, left_out=left_out, residual_deg=residual,
+        upright_pair=report, working_height=chosen.height, views=out_views, frame=alignment.source,
         scale=transform.scale, scale_uncertainty=alignment.scale_uncertainty,
         floor_tilt_deg=alignment.floor_tilt_deg, points=len(points),
         mean_track_length=float(result.track_length.mean()) if len(points) else 0.0,
         verified_pairs=result.verified_pairs, sparse_points=PLY_NAME, drawing=DRAWING_NAME,
-        timings_s=result.timings)
+        timings_s={**result.timings, "total": chosen.seconds})
 
 
-def _colmap(panoramas: list[Panorama], p: Params) -> Reconstruction:
-    options = SfmOptions(method=p.method, max_features=p.max_features, min_matches=p.min_matches,
+def summary(data: PosesOutput) -> str:
+    """What `run poses` prints: views placed, method (and why), scale, residual."""
+    placed = sum(v.registered for v in data.views)
+    text = (f"poses: {placed} of {len(data.views)} views placed by {data.method}"
+            + (f" ({data.method_reason})" if data.requested_method == "auto" and data.method_reason else "")
+            + f"; scale {data.scale:.4g} m/unit ± {100 * data.scale_uncertainty:.1f} % from the {data.frame}")
+    if data.residual_deg is not None:
+        text += f"; median residual {data.residual_deg:.3f}°"
+    if data.left_out:
+        text += "; left out: " + ", ".join(f"{k} ({why})" for k, why in data.left_out.items())
+    return text
+
+
+def _empty(verified_pairs: int) -> Reconstruction:
+    return Reconstruction({}, {}, {}, np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, int), verified_pairs)
+
+
+def _colmap(panoramas: list[Panorama], p: Params, method: str) -> Reconstruction:
+    options = SfmOptions(method=method, max_features=p.max_features, min_matches=p.min_matches,
                          threads=p.threads or -1, seed=p.seed)
     with make_progress() as bar, tempfile.TemporaryDirectory(prefix="colmap-") as work:
-        task = bar.add_task(f"structure from motion ({p.method})", total=len(SFM_STEPS))
+        task = bar.add_task(f"structure from motion ({method})", total=len(SFM_STEPS))
         return reconstruct(panoramas, Path(work), options, progress=lambda step: bar.update(task, advance=1, step=step))
-
-
-def _upright_pair(panoramas: list[Panorama]) -> tuple[Reconstruction, PairResult | None]:
-    """The upright two-view solver's reconstruction, or an empty one (no verified pair) when it
-    finds no distinct pose."""
-    pair = relative_pose(*panoramas)
-    if pair is None:
-        return Reconstruction({}, {}, {}, np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, int), 0), None
-    return pair.reconstruction, pair
 
 
 def draw_cameras(path: Path, points: np.ndarray, poses: dict[str, np.ndarray], dpi: int = 110) -> None:

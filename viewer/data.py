@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from runfs.errors import PanoError
-from runfs.paths import RUN_MARKER, default_run_folder, is_run_folder, open_run_folder
+from runfs.paths import RUN_MARKER, check_run_folder, default_run_folder, is_run_folder, open_run_folder
 
 SH_C0 = 0.28209479177387814
 MODEL_PATH = Path("train") / "point_cloud.ply"
@@ -36,6 +36,8 @@ def resolve_target(path: Path, out: Path | None = None) -> Target:
     if (path / "scene.json").is_file():
         scene = load_scene(path, check_images=False)
         run_dir = Path(out) if out is not None else default_run_folder(scene.name, scene.root)
+        if run_dir.is_dir():  # a run folder of another scene folder (a copy of the same name) is refused
+            check_run_folder(run_dir, scene.root)
     elif path.is_dir() and is_run_folder(path):
         if out is not None and Path(out).resolve() != path.resolve():
             raise PanoError(out, f"--out given with a run folder ({path}); give one or the other")

@@ -13,17 +13,27 @@ import simulate
 from pipeline.engine import Engine
 from pipeline.registry import build_registry
 from schemas.scene_loader import load_scene
-from sfm.bench import SCENE_EFFECTS, unposed_copy
+from sfm.bench import similarity_errors, simulate_capture, unposed_copy
 from sfm.frame import pose_errors, rotation_angle_deg
 from tests.clitools import invoke
 
-ZIND = Path(__file__).resolve().parents[3] / "shared" / "data" / "zind_pair"
+def _shared_data() -> Path:
+    """../shared/data beside the project root (a worktree may sit one folder deeper)."""
+    for parent in Path(__file__).resolve().parents[2:5]:
+        if (parent / "shared" / "data").is_dir():
+            return parent / "shared" / "data"
+    return Path(__file__).resolve().parents[3] / "shared" / "data"
+
+
+ZIND = _shared_data() / "zind_pair"
+#: The cuboid scenes of the COLMAP tests: textured, furnished, shaded, with fine detail, no capture effects.
+COLMAP_EFFECTS = "texture,furniture,shading,aa,detail"
 
 
 def _simulated(tmp_path: Path, views: int, test_views: int = 0, height: int = 512, seed: int = 0):
     sim = tmp_path / f"sim{views}"
     simulate.generate_scene(sim, preset="cuboid", views=views, test_views=test_views, height=height, seed=seed,
-                            effects=SCENE_EFFECTS)
+                            effects=COLMAP_EFFECTS)
     scene = tmp_path / f"scene{views}"
     return scene, unposed_copy(sim, scene)
 
@@ -33,10 +43,29 @@ def _run_poses(scene: Path, run: Path, **params) -> dict:
     return json.loads((run / "poses" / "artifact.json").read_text())["data"]
 
 
-@pytest.mark.parametrize("views", [4, 8])
-def test_simulated_scene_posed_within_2cm_and_half_a_degree(tmp_path, views):
-    scene, truth = _simulated(tmp_path, views)
+@pytest.mark.slow
+@pytest.mark.parametrize("views,walk", [(8, False), (13, False), (8, True)], ids=["8-views", "13-views", "chain-8"])
+def test_capture_over_three_rooms_placed_by_default_within_5cm_and_1_degree(tmp_path, views, walk):
+    """Simulated captures with the hard parts of real ones (sfm.bench): three rooms seen from one
+    another only through openings, bare walls, noise, exposure, a tripod, neighbours 1-6 m apart;
+    the chain: cameras along a walk. Every view placed by the default, within 5 cm and 1°."""
+    scene = tmp_path / "scene"
+    truth = simulate_capture(scene, views, height=512, walk=walk)
     data = _run_poses(scene, tmp_path / "run")
+    assert data["requested_method"] == "auto" and data["method"] == "upright", data["attempts"]
+    posed = {v["view"]: np.asarray(v["pose"]) for v in data["views"] if v["registered"]}
+    assert sorted(posed) == sorted(truth) and data["left_out"] == {}
+    errors, scale = similarity_errors(posed, truth)
+    assert max(e[0] for e in errors.values()) < 0.05, errors
+    assert max(e[1] for e in errors.values()) < 1.0, errors
+    assert data["frame"] == "floor" and abs(scale - 1.0) < 0.05, scale  # the metric scale from the floor
+    assert data["residual_deg"] < 0.2
+
+
+@pytest.mark.parametrize("views", [4, 8])
+def test_simulated_scene_posed_by_colmap_within_2cm_and_half_a_degree(tmp_path, views):
+    scene, truth = _simulated(tmp_path, views)
+    data = _run_poses(scene, tmp_path / "run", method="equirect")
     posed = {v["view"]: np.asarray(v["pose"]) for v in data["views"] if v["registered"]}
     assert sorted(posed) == sorted(truth)
     errors = pose_errors(posed, truth)
@@ -58,7 +87,7 @@ def test_given_poses_fix_the_frame(tmp_path):
     for v in manifest["views"][:2]:
         v["pose"] = truth[v["name"]].tolist()
     (scene / "scene.json").write_text(json.dumps(manifest))
-    data = _run_poses(scene, tmp_path / "run")
+    data = _run_poses(scene, tmp_path / "run", method="equirect")  # cameras at different heights
     assert data["frame"] == "known poses"
     views = {v["view"]: v for v in data["views"]}
     for name, pose in truth.items():  # no alignment at all: the given views define the world
@@ -69,7 +98,7 @@ def test_given_poses_fix_the_frame(tmp_path):
 
 def test_downstream_stages_see_the_recovered_poses(tmp_path):
     scene, truth = _simulated(tmp_path, 4)
-    engine = Engine(load_scene(scene), tmp_path / "run", build_registry())
+    engine = Engine(load_scene(scene), tmp_path / "run", build_registry(), {"poses": {"method": "equirect"}})
     assert engine.plan()["poses"].state == "missing"
     engine.run(target="poses")
     completed = engine.completed_scene("union")
@@ -91,7 +120,7 @@ def test_panoramas_sharing_no_content_are_a_clear_error(tmp_path, capsys):
     for seed, name in ((1, "a"), (2, "b")):  # two different rooms
         sim = tmp_path / f"room{seed}"
         simulate.generate_scene(sim, preset="cuboid", views=1, test_views=0, height=256, seed=seed,
-                                effects=SCENE_EFFECTS)
+                                effects=COLMAP_EFFECTS)
         shutil.copyfile(sim / "images" / "train_00.png", scene / "images" / f"{name}.png")
     (scene / "scene.json").write_text(json.dumps({"views": [
         {"name": "a", "image": "images/a.png"}, {"name": "b", "image": "images/b.png"}]}))
@@ -101,23 +130,68 @@ def test_panoramas_sharing_no_content_are_a_clear_error(tmp_path, capsys):
     assert not (tmp_path / "run" / "poses" / "artifact.json").exists()
 
 
-@pytest.mark.skipif(not ZIND.is_dir(), reason="shared data zind_pair absent")
-def test_zind_pair_relative_pose_within_1_degree_and_3_percent(tmp_path):
+def _zind_unposed(tmp_path: Path) -> tuple[Path, dict[str, np.ndarray]]:
+    """A copy of zind_pair as the README's own-panoramas recipe writes a scene: names, images,
+    camera heights and the nadir cap, no poses."""
     scene = tmp_path / "zind"
     shutil.copytree(ZIND, scene)
     manifest = json.loads((scene / "scene.json").read_text())
     truth = {v["name"]: np.asarray(v.pop("pose")) for v in manifest["views"]}
     manifest["nadir_mask_deg"] = 35.0  # the tripod travels with the camera
     (scene / "scene.json").write_text(json.dumps(manifest))
-    # COLMAP places neither panorama; the upright two-view solver does (docs/poses.md)
-    data = _run_poses(scene, tmp_path / "run", working_height=1024, method="upright-pair")
-    assert data["upright_pair"]["inliers"] >= 20 and data["frame"] == "floor"
+    return scene, truth
+
+
+def _check_zind_pose(data: dict, truth: dict[str, np.ndarray]) -> None:
     posed = {v["view"]: np.asarray(v["pose"]) for v in data["views"]}
     rel = np.linalg.inv(posed["pano_12"]) @ posed["pano_18"]
     rel_true = np.linalg.inv(truth["pano_12"]) @ truth["pano_18"]
     assert rotation_angle_deg(rel[:3, :3].T @ rel_true[:3, :3]) < 1.0
+    cos = rel[:3, 3] @ rel_true[:3, 3] / np.linalg.norm(rel[:3, 3]) / np.linalg.norm(rel_true[:3, 3])
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 3.0
     # camera_height 1 in both: the recovered metric scale is the annotation's unit
-    assert np.linalg.norm(rel[:3, 3] - rel_true[:3, 3]) < 0.03 * np.linalg.norm(rel_true[:3, 3])
+    assert abs(np.linalg.norm(rel[:3, 3]) / np.linalg.norm(rel_true[:3, 3]) - 1.0) < 0.05
+
+
+@pytest.mark.skipif(not ZIND.is_dir(), reason="shared data zind_pair absent")
+def test_zind_pair_posed_by_default_within_1_degree_3_degrees_and_5_percent(tmp_path):
+    # COLMAP places neither panorama; the default (auto) takes the upright solver (docs/poses.md)
+    scene, truth = _zind_unposed(tmp_path)
+    data = _run_poses(scene, tmp_path / "run")
+    assert data["method"] == "upright" and data["requested_method"] == "auto"
+    assert data["frame"] == "floor" and data["pairs"][0]["inliers"] >= 20 and data["pairs"][0]["used"]
+    _check_zind_pose(data, truth)
+
+
+@pytest.mark.skipif(not ZIND.is_dir(), reason="shared data zind_pair absent")
+def test_colmap_failing_on_a_far_pair_suggests_the_upright_solver(tmp_path, capsys):
+    scene, _ = _zind_unposed(tmp_path)
+    code, out, err = invoke(["run", "poses", scene, "--out", tmp_path / "run", "--set", "poses.method=equirect"],
+                            capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1  # COLMAP's own log stays off stderr
+    assert "try --set poses.method=upright" in err
+
+
+@pytest.mark.skipif(not ZIND.is_dir(), reason="shared data zind_pair absent")
+def test_readme_recipe_on_a_copy_of_zind_pair(tmp_path, capsys, monkeypatch):
+    """README "Your own panoramas (no poses)", as written, no --set: status, run poses, run all,
+    report. The scene's pano-pipe.yaml keeps the training short, as a user would keep settings."""
+    scene, truth = _zind_unposed(tmp_path)
+    (scene / "pano-pipe.yaml").write_text("train:\n  iterations: 30\n  height: 32\n")
+    monkeypatch.chdir(tmp_path)  # the default run folder runs/<scene-name>/
+    code, out, err = invoke(["status", "zind"], capsys)
+    assert code == 0 and err == "" and "2 of 2 views have no pose" in out
+    code, out, err = invoke(["run", "poses", "zind"], capsys)
+    assert code == 0 and err == "", err
+    assert "poses: 2 of 2 views placed by upright" in " ".join(out.split())
+    run = tmp_path / "runs" / "zind_pair"
+    _check_zind_pose(json.loads((run / "poses" / "artifact.json").read_text())["data"], truth)
+    code, out, err = invoke(["run", "all", "zind"], capsys)
+    assert code == 0 and err == "", err
+    code, out, err = invoke(["report", "zind"], capsys)
+    assert code == 0 and err == "", err
+    html = (run / "report" / "report.html").read_text()
+    assert 'id="poses"' in html and "pair graph" in html
 
 
 def test_run_all_on_names_images_and_splits_only(tmp_path, capsys):

@@ -14,7 +14,7 @@ import pytest
 from panogeom.equirect import angles_to_pixel, dirs_to_angles, pixel_grid_angles, ray_directions
 from simulate.layout import horizonnet_to_boundary
 
-PRESETS = ["cuboid", "l-shape", "two-rooms", "demo"]
+PRESETS = ["cuboid", "l-shape", "two-rooms", "demo", "suite"]
 
 
 def world_points(scene, view):

@@ -1,0 +1,105 @@
+"""The report's poses section: how the cameras were placed (the poses stage's artifact).
+
+Cameras over the sparse points, the pair graph with its inlier counts (which pairs the
+global solve kept), the method and why, the scale and its uncertainty, and the views left
+out with the reason. Kept apart from evaluation/report.py, which calls `add_poses_section`.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def _fmt(v: float | None, digits: int = 3) -> str:
+    return "—" if v is None else f"{v:.{digits}g}"
+
+
+def plot_pair_graph(data: dict, path: Path) -> bool:
+    """The placed cameras seen from above (world x right, z up the page) joined by the pairs
+    the upright solver tried: kept pairs solid, their width and label the inliers; pairs it
+    verified but dropped dashed red. False when there is nothing to draw."""
+    poses = {v["view"]: np.asarray(v["pose"]) for v in data["views"] if v.get("registered") and v.get("pose")}
+    if not poses:
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 6))
+    top = max([p["inliers"] for p in data.get("pairs", [])] or [1])
+    for p in data.get("pairs", []):
+        if p["a"] not in poses or p["b"] not in poses or p["inliers"] == 0:
+            continue
+        a, b = poses[p["a"]][[0, 2], 3], poses[p["b"]][[0, 2], 3]
+        style = {"color": "tab:blue", "lw": 0.5 + 3.0 * p["inliers"] / top} if p["used"] else \
+            {"color": "tab:red", "lw": 0.8, "ls": "--"}
+        ax.plot([a[0], b[0]], [a[1], b[1]], zorder=1, **style)
+        mid = (a + b) / 2
+        ax.annotate(str(p["inliers"]), mid, fontsize=6, color=style["color"], ha="center", va="center",
+                    bbox={"boxstyle": "round,pad=0.1", "fc": "white", "ec": "none", "alpha": 0.7})
+    for name, pose in poses.items():
+        x, z = pose[0, 3], pose[2, 3]
+        ax.plot(x, z, "o", color="black", ms=4, zorder=2)
+        ax.annotate(name, (x, z), textcoords="offset points", xytext=(4, 4), fontsize=7)
+    ax.set_aspect("equal")
+    ax.set_xlabel("world x (m)")
+    ax.set_ylabel("world z (m)")
+    ax.set_title("pair graph: inliers per pair (solid: kept, dashed: dropped)")
+    ax.grid(True, lw=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True
+
+
+def add_poses_section(doc, run_dir: Path) -> bool:
+    """Append the poses section to the report `doc` (evaluation.report's _Doc); False (nothing
+    added) when the run has no poses artifact, i.e. every pose came from scene.json."""
+    path = Path(run_dir) / "poses" / "artifact.json"
+    if not path.is_file():
+        return False
+    try:
+        data = json.loads(path.read_text())["data"]
+    except (OSError, ValueError, KeyError):
+        return False
+    views = data.get("views", [])
+    placed = sum(bool(v.get("registered")) for v in views)
+    doc.h(2, "Poses", "poses")
+    method = data.get("method", "?")
+    reason = data.get("method_reason") or ""
+    doc.p(f"{placed} of {len(views)} views placed by {method}"
+          + (f" (poses.method={data.get('requested_method')}: {reason})" if reason else "")
+          + f"; scale {_fmt(data.get('scale'), 4)} m per unit ± {100 * data.get('scale_uncertainty', 0):.2g} % "
+            f"from the {data.get('frame')}; {data.get('points', 0)} sparse points"
+          + (f", median angular residual {data['residual_deg']:.3f}°" if data.get("residual_deg") is not None
+             else "") + ".")
+    left_out = data.get("left_out") or {}
+    if left_out:
+        doc.p("Left out: " + "; ".join(f"{k}: {why}" for k, why in left_out.items()) + ".", "warn")
+    figures = []
+    drawing = Path(run_dir) / "poses" / data.get("drawing", "cameras.png")
+    if drawing.is_file():
+        figures.append((drawing, "cameras over the sparse points (from above)"))
+    graph = doc.img_dir / "poses-pair-graph.png"
+    if data.get("pairs") and plot_pair_graph(data, graph):
+        figures.append((graph, "pair graph with inlier counts"))
+    if figures:
+        doc.images(figures, "poses")
+    attempts = data.get("attempts") or []
+    if len(attempts) > 1:
+        doc.table(["method", "placed", "seconds", "outcome"],
+                  [[a["method"], str(a["placed"]), f"{a['seconds']:.1f}", a.get("failure") or "placed"]
+                   for a in attempts])
+    pairs = data.get("pairs") or []
+    if pairs:
+        doc.table(["pair", "inliers", "kept"],
+                  [[f"{p['a']} – {p['b']}", str(p["inliers"]) if p["inliers"] else "not verified",
+                    "yes" if p["used"] else "no"] for p in pairs])
+    doc.table(["view", "placed", "given", "observations", "residual (px)"],
+              [[v["view"], "yes" if v.get("registered") else "no", "yes" if v.get("given") else "no",
+                str(v.get("observations", 0)), _fmt(v.get("reprojection_error_px"))] for v in views])
+    return True
