@@ -14,6 +14,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 from batch.executors import Executor
 from batch.jobs import JobOutcome, StageJob, run_stage_job
@@ -64,9 +65,12 @@ def test_psnr(out_dir: Path | None) -> float | None:
 
 def run_batch(scene_dirs: list[Path], out_root: Path, config: dict, config_source: str, executor: Executor,
               target: str | None = None, until: str | None = None, force: bool = False,
-              resume: bool = False, force_upstream: bool = False) -> list[SceneResult]:
+              resume: bool = False, force_upstream: bool = False,
+              config_for: Callable[[Path], tuple[dict, str]] | None = None) -> list[SceneResult]:
     """Run the selected stages of every scene; returns one result per scene, in order. `target`,
-    `force` and `force_upstream` as in Engine.run."""
+    `force` and `force_upstream` as in Engine.run. `config_for(scene_root)`, when given, is each
+    scene's own configuration (its pano-pipe.yaml under the command's --config/--set), as a
+    single run reads it; otherwise every scene runs with `config`."""
     from pipeline.engine import Engine, select_stages
     from runfs.fsutil import run_folder_lock
     from runfs.paths import run_folder_name
@@ -77,10 +81,12 @@ def run_batch(scene_dirs: list[Path], out_root: Path, config: dict, config_sourc
     selected = select_stages(registry, target, until)  # an unknown stage fails the whole command
     results: list[SceneResult] = []
     scenes = {}
+    configs: dict[Path, tuple[dict, str]] = {}
     for scene_dir in scene_dirs:  # a scene that does not load fails alone, before anything runs
         try:
             scene = load_scene(scene_dir)
             run_folder_name(scene.name, scene.root)  # the batch's OUT/<name>/, as a single run's runs/<name>/
+            configs[scene_dir] = config_for(scene.root) if config_for else (config, config_source)
         except PanoError as e:
             results.append(SceneResult(Path(scene_dir).name, scene_dir, None, error=str(e), exit_code=e.exit_code))
             continue
@@ -93,14 +99,16 @@ def run_batch(scene_dirs: list[Path], out_root: Path, config: dict, config_sourc
                 continue
             r.out_dir = folders[r.scene_dir]
             try:
-                engine = Engine(scenes[r.scene_dir], r.out_dir, registry, config, config_source=config_source)
+                scene_cfg, scene_source = configs[r.scene_dir]
+                engine = Engine(scenes[r.scene_dir], r.out_dir, registry, scene_cfg, config_source=scene_source)
                 for name in selected:  # parameters checked before anything runs
                     engine.params_for(name)
                 locks.enter_context(run_folder_lock(r.out_dir))
                 engine.prepare_run_folder()
             except PanoError as e:
                 r.error, r.exit_code = str(e), e.exit_code
-        jobs = _SceneJobs(registry, selected, config, config_source, target, force, resume, force_upstream)
+        jobs = _SceneJobs(registry, selected, config, config_source, target, force, resume, force_upstream,
+                          configs)
         with Board([r.name for r in results], selected, executor.name) as board:
             _schedule(results, jobs, executor, board)
     return results
@@ -118,6 +126,8 @@ class _SceneJobs:
     force: bool
     resume: bool
     force_upstream: bool = False
+    #: each scene's own (configuration, its source); `config` for a scene not in it
+    scene_configs: dict[Path, tuple[dict, str]] = field(default_factory=dict)
 
     def deps(self, name: str) -> list[str]:
         return [d for d in self.registry[name].inputs if d in self.selected]
@@ -129,7 +139,8 @@ class _SceneJobs:
     def job(self, r: SceneResult, name: str, threads: int | None) -> StageJob:
         from pipeline.engine import forced
 
-        return StageJob(r.scene_dir, r.out_dir, name, self.config, self.config_source,
+        config, source = self.scene_configs.get(r.scene_dir, (self.config, self.config_source))
+        return StageJob(r.scene_dir, r.out_dir, name, config, source,
                         force=forced(name, self.target, self.force, self.force_upstream), resume=self.resume,
                         threads=threads)
 

@@ -345,7 +345,8 @@ def _run_batch(stage: str, scenes: list[Path], out: Path | None, config: Path | 
     try:
         results = run_batch(scenes, out if out is not None else Path("runs"), cfg, source, executor,
                             target=target, until=until, force=force, resume=resume,
-                            force_upstream=force_upstream)
+                            force_upstream=force_upstream,
+                            config_for=lambda scene_root: scene_config(scene_root, config, set_))
     finally:
         executor.close()
     batch_console.print(summary_table([r.row() for r in results]))

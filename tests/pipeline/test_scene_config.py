@@ -72,3 +72,25 @@ def test_follow_up_commands_keep_the_flags():
     assert command_flags(Path("runs/x"), Path("my cfg.yaml"), ["train.iterations=30", "poses.method=upright"]) == (
         " --out runs/x --config 'my cfg.yaml' --set train.iterations=30 --set poses.method=upright")
     assert command_flags(None, None, None) == ""
+
+
+def test_a_batch_reads_each_scenes_own_file(tmp_path, capsys):
+    """`run STAGE A B` runs each scene with its own pano-pipe.yaml, as `run STAGE A` would."""
+    import json
+
+    scenes = []
+    for name in ("alpha", "beta"):
+        scene = tmp_path / name
+        simulate.generate_scene(scene, preset="cuboid", views=2, test_views=0, height=32, effects="none",
+                                with_layout=True)
+        scenes.append(scene)
+    (scenes[0] / "pano-pipe.yaml").write_text("layout:\n  align: 'off'\n")
+    out = tmp_path / "out"
+    code, _, err = invoke(["run", "layout", *scenes, "--out", out], capsys)
+    assert code == 0, err
+    aligns = {}
+    for scene in scenes:
+        name = json.loads((scene / "scene.json").read_text()).get("name", scene.name)
+        meta = json.loads((out / name / "layout" / "artifact.json").read_text())["meta"]
+        aligns[scene.name] = meta["params"]["align"]
+    assert aligns == {"alpha": "off", "beta": "auto"}
