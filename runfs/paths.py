@@ -22,6 +22,7 @@ import unicodedata
 from pathlib import Path, PurePosixPath, PureWindowsPath
 
 from runfs.errors import PanoError
+from runfs.fsutil import atomic_write_text
 
 #: Longest name in UTF-8 bytes: file systems allow 255, and suffixes such as
 #: `.raw_boundaries.npy` or `.tmp-<stage>-xxxxxxxx` must still fit.
@@ -248,8 +249,8 @@ def mark_run_folder(out_dir: Path, scene_root: Path) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
     marker = out_dir / RUN_MARKER
     if not marker.is_file() or run_folder_scene(out_dir) is None:  # new, moved, or from before "run"
-        marker.write_text(json.dumps({"made_by": "pano-pipe", "scene": str(Path(scene_root).resolve()),
-                                      "run": str(out_dir.resolve())}) + "\n")
+        record = {"made_by": "pano-pipe", "scene": str(Path(scene_root).resolve()), "run": str(out_dir.resolve())}
+        atomic_write_text(marker, json.dumps(record) + "\n")
 
 
 def run_folder_name(scene_name: str, scene_root: Path | None = None) -> str:

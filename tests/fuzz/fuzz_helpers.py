@@ -82,7 +82,8 @@ SCENE_VIEWS = ("train_00", "train_01", "train_02", "test_00")
 TRAIN_VIEWS = ("train_00", "train_01", "train_02")
 
 #: Run-folder files that are bookkeeping, not artifacts: appended / rewritten on every run.
-BOOKKEEPING = {"run_log.jsonl", ".lock"}
+# the run log, the lock and the marker (rewritten when a run folder moved): not artifacts
+BOOKKEEPING = {"run_log.jsonl", ".lock", ".pano-pipe-run"}
 TEMP_PREFIXES = (".tmp-", ".old-")
 
 REPORT_ENV = "PANO_FUZZ_REPORT"
