@@ -190,3 +190,16 @@ def known_name(path: Path) -> str | None:
     except OSError:
         return None
     return next((e.name for e in known_models().values() if onnx_path(e).resolve() == resolved), None)
+
+
+def model_label(path: Path) -> str:
+    """How a stage names the model it runs: 'NAME (path)' for a known model, else the path."""
+    name = known_name(Path(path))
+    return f"{name} ({path})" if name else str(path)
+
+
+def fetch_hint(kind: str) -> str:
+    """The one-line advice when no `kind` model is at hand: the command that gets the recommended one."""
+    from models.registry import RECOMMENDED
+
+    return f"get one: pano-pipe models fetch {RECOMMENDED[kind]}"

@@ -27,6 +27,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from models.store import fetch_hint, model_label
 from runfs.errors import PanoError
 from runfs.limits import load_npy, read_image
 from pipeline.stage import StageContext
@@ -101,11 +102,6 @@ class Params(BaseModel):
         return {k: v for k in DepthContract.model_fields if (v := getattr(self, k)) is not None}
 
 
-def _get_model_hint() -> str:
-    from models.registry import RECOMMENDED
-
-    return f"get one: pano-pipe models fetch {RECOMMENDED['depth']}"
-
 
 def _views_without_files(scene: Scene) -> list[View]:
     return [v for v in scene.manifest.train_views() if scene.depth_path(v) is None]
@@ -142,7 +138,7 @@ def skip_reason(scene: Scene, params: Params) -> str | None:
         return None
     if any(scene.depth_path(v) is not None for v in scene.manifest.train_views()):
         return None
-    return f"no depth files (depth/<view>.png or .npy) and no depth model; {_get_model_hint()}"
+    return f"no depth files (depth/<view>.png or .npy) and no depth model; {fetch_hint('depth')}"
 
 
 def run_reason(scene: Scene, params: Params) -> str:
@@ -150,8 +146,8 @@ def run_reason(scene: Scene, params: Params) -> str:
     if not missing:
         return "depth files for every train view"
     if params.model is None:
-        return f"{len(missing)} train view(s) without depth files get no depth ({_get_model_hint()})"
-    return f"model {_model_label(params.model)} for {len(missing)} train view(s) without depth files"
+        return f"{len(missing)} train view(s) without depth files get no depth ({fetch_hint('depth')})"
+    return f"model {model_label(params.model)} for {len(missing)} train view(s) without depth files"
 
 
 def hint(scene: Scene, params: Params) -> str | None:
@@ -162,14 +158,8 @@ def hint(scene: Scene, params: Params) -> str | None:
     if not missing:
         return None
     return (f"depth: {len(missing)} train view(s) have no depth file and no depth model is set or cached; "
-            f"{_get_model_hint()}")
+            f"{fetch_hint('depth')}")
 
-
-def _model_label(path) -> str:
-    from models.store import known_name
-
-    name = known_name(Path(path))
-    return f"{name} ({path})" if name else str(path)
 
 
 # ----------------------------------------------------------------------------- pure helpers
@@ -274,7 +264,7 @@ def run(ctx: StageContext[Params]) -> DepthOutput:
         raise PanoError(scene.root, "no train view has depth (no depth files, no depth.model)")
     return DepthOutput(
         views=results,
-        model=_model_label(p.model) if model is not None else None,
+        model=model_label(p.model) if model is not None else None,
         network=model.description.get("architecture") if model is not None else None,
         contract=model.contract.model_dump(mode="json") if model is not None else None,
     )

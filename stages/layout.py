@@ -27,6 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from layoutnet import postprocess as pp
 from layoutnet.alignment import Alignment
 from layoutnet.formats import SuppliedLayout, read_layout
+from models.store import fetch_hint, model_label
 from runfs.errors import PanoError
 from runfs.limits import read_image
 from pipeline.stage import StageContext
@@ -82,11 +83,6 @@ def _has_source(scene: Scene, view: View) -> bool:
     return scene.layout_path(view) is not None
 
 
-def _get_model_hint() -> str:
-    from models.registry import RECOMMENDED
-
-    return f"get one: pano-pipe models fetch {RECOMMENDED['layout']}"
-
 
 def _views_without_files(scene: Scene, params: Params) -> list[View]:
     return [v for v in selected_views(scene, params) if not _has_source(scene, v)]
@@ -113,7 +109,7 @@ def skip_reason(scene: Scene, params: Params) -> str | None:
         return None
     if any(_has_source(scene, v) for v in selected_views(scene, params)):
         return None
-    return f"no layout source: no layout files and no layout model; {_get_model_hint()}"
+    return f"no layout source: no layout files and no layout model; {fetch_hint('layout')}"
 
 
 def run_reason(scene: Scene, params: Params) -> str:
@@ -121,8 +117,8 @@ def run_reason(scene: Scene, params: Params) -> str:
     if not missing:
         return "layout files for every view"
     if params.model is None:
-        return f"{len(missing)} view(s) without layout files are left out ({_get_model_hint()})"
-    return f"model {_model_label(params.model)} for {len(missing)} view(s) without layout files"
+        return f"{len(missing)} view(s) without layout files are left out ({fetch_hint('layout')})"
+    return f"model {model_label(params.model)} for {len(missing)} view(s) without layout files"
 
 
 def hint(scene: Scene, params: Params) -> str | None:
@@ -134,14 +130,8 @@ def hint(scene: Scene, params: Params) -> str | None:
     if not missing:
         return None
     return (f"layout: {len(missing)} train view(s) have no layout file and no layout model is set or "
-            f"cached; {_get_model_hint()}")
+            f"cached; {fetch_hint('layout')}")
 
-
-def _model_label(path: Path) -> str:
-    from models.store import known_name
-
-    name = known_name(Path(path))
-    return f"{name} ({path})" if name else str(path)
 
 
 def selected_views(scene: Scene, params: Params) -> list[View]:
