@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
-__all__ = ["l1_loss", "ssim", "psnr", "psnr_tensor", "layout_loss", "photometric_loss", "LAYOUT_EPS"]
+__all__ = ["l1_loss", "ssim", "psnr", "psnr_tensor", "layout_loss", "photometric_loss", "LAYOUT_EPS",
+           "ssim_map", "solid_angle_weight"]
 
 #: Displacement (metres) below which L_layout fades to 0: it regularises the
 #: 0/0 at μ = u0 (value 0, zero and finite gradient there) and changes the
@@ -43,10 +46,11 @@ def _blur(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
 
 def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5,
-         mask: torch.Tensor | None = None) -> torch.Tensor:
+         mask: torch.Tensor | None = None, return_map: bool = False) -> torch.Tensor:
     """Mean SSIM of two [H,W,3] (or [B,3,H,W]) images in [0,1], as the 3DGS code computes it
     (Gaussian window, zero padding). With `mask` ([H,W] bool): masked-out pixels are zeroed in
-    both images (their content has no effect) and the map is averaged over valid pixels only."""
+    both images (their content has no effect) and the map is averaged over valid pixels only.
+    `return_map`: the [B,H,W] map (channel mean) instead of its mean."""
     if mask is not None:
         m = mask[..., None].to(pred.dtype)
         pred, gt = pred * m, gt * m
@@ -62,9 +66,18 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 
     s1, s2, s12 = e11 - mu1_sq, e22 - mu2_sq, e12 - mu12
     c1, c2 = 0.01**2, 0.03**2
     m = ((2 * mu12 + c1) * (2 * s12 + c2)) / ((mu1_sq + mu2_sq + c1) * (s1 + s2 + c2))
+    if return_map:
+        return m.mean(dim=1)
     if mask is not None:
         return (m.mean(dim=1)[0] * mask.to(m.dtype)).sum() / mask.sum().clamp_min(1)
     return m.mean()
+
+
+def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5,
+             mask: torch.Tensor | None = None) -> torch.Tensor:
+    """The per-pixel SSIM of two [H,W,3] images (channel mean) as [H,W] (masked pixels zeroed
+    in both images first, as in :func:`ssim`)."""
+    return ssim(pred, gt, window, sigma, mask, return_map=True)[0]
 
 
 def psnr(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> float:
@@ -105,8 +118,27 @@ def layout_loss(means: torch.Tensor, u0: torch.Tensor, normals: torch.Tensor, ma
 
 
 def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_l1: float = 0.8, lambda_dssim: float = 0.2,
-                     mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(λ1·L1 + λ2·(1−SSIM), L1, SSIM) of [H,W,3] images, over `mask`'s valid pixels if given."""
-    l1 = l1_loss(pred, gt, mask)
-    s = ssim(pred, gt, mask=mask) if lambda_dssim > 0 else pred.new_tensor(1.0)
+                     mask: torch.Tensor | None = None, weight: torch.Tensor | None = None
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(λ1·L1 + λ2·(1−SSIM), L1, SSIM) of [H,W,3] images, over `mask`'s valid pixels if given.
+    `weight` ([H,W], >= 0) weighs the per-pixel L1 and SSIM maps (e.g. each pixel's solid angle,
+    `solid_angle_weight`); the means are then weighted means over the valid pixels."""
+    if weight is None:
+        l1 = l1_loss(pred, gt, mask)
+        s = ssim(pred, gt, mask=mask) if lambda_dssim > 0 else pred.new_tensor(1.0)
+    else:
+        w = weight.to(pred.dtype) if mask is None else weight.to(pred.dtype) * mask.to(pred.dtype)
+        norm = w.sum().clamp_min(1e-12)
+        l1 = ((pred - gt).abs().mean(-1) * w).sum() / norm
+        s = (ssim_map(pred, gt, mask=mask) * w).sum() / norm if lambda_dssim > 0 else pred.new_tensor(1.0)
     return lambda_l1 * l1 + lambda_dssim * (1.0 - s), l1, s
+
+
+def solid_angle_weight(height: int, width: int, dtype=torch.float32, device="cpu") -> torch.Tensor:
+    """[H,W] cos(latitude) of each equirectangular pixel centre, scaled to mean 1: proportional to
+    the pixel's solid angle, so a weighted mean over the panorama weighs every steradian alike
+    (an unweighted one counts the rows near the poles 1/cos(latitude) times more per steradian)."""
+    lat = (0.5 - (torch.arange(height, dtype=torch.float64) + 0.5) / height) * math.pi
+    w = torch.cos(lat).clamp_min(0.0)
+    w = (w / w.mean())[:, None].expand(height, width)
+    return w.to(dtype=dtype, device=device).contiguous()

@@ -33,7 +33,7 @@ import torch
 
 from gaussians.appearance import Appearance
 from gaussians.densify import DensifyStats, densify_and_prune, gradient_scale, reset_opacity
-from gaussians.losses import layout_loss, photometric_loss, psnr, psnr_tensor
+from gaussians.losses import layout_loss, photometric_loss, psnr, psnr_tensor, solid_angle_weight
 from gaussians.model import PARAM_NAMES, Gaussians, render
 from gaussians.optim import Adam, expon_lr
 
@@ -51,6 +51,11 @@ class TrainConfig:
     lambda_dssim: float = 0.2
     lambda_layout: float = 0.1
     layout_reg: bool = True
+    #: weigh each panorama pixel's L1 and SSIM by its solid angle (cos latitude), so the loss counts
+    #: every steradian alike (perspective views are unweighted)
+    solid_angle_weighting: bool = False
+    #: λ · mean Gaussian scale / extent (the official 360-GS code's mean-scale penalty on floaters)
+    lambda_scale: float = 0.0
     # learning rates (3DGS); the position rates are multiplied by the scene extent
     lr_position_init: float = 1.6e-4
     lr_position_final: float = 1.6e-6
@@ -73,6 +78,8 @@ class TrainConfig:
     opacity_reset_every: int = 3000
     max_world_scale: float | None = 0.1  # × extent; prunes after the first opacity reset, as 3DGS
     max_screen_radius: float | None = None  # radians; None = off
+    #: iteration from which max_world_scale / max_screen_radius prune; None = after the first opacity reset
+    size_prune_from: int | None = None
     max_gaussians: int | None = 200_000
     # misc
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -167,6 +174,7 @@ class Trainer:
         #: Extra identity a checkpoint must match (e.g. a hash of the initial model and images).
         self.extra_fingerprint = ""
         self._in_step = False
+        self._weights: dict[tuple[int, int], torch.Tensor] = {}
 
     def _new_appearance(self) -> Appearance | None:
         if not self.cfg.appearance:
@@ -177,6 +185,18 @@ class Trainer:
     def _as_trained(self, view: TrainView, image: torch.Tensor) -> torch.Tensor:
         """A render as the loss sees it: through the view's appearance transform, when on."""
         return image if self.appearance is None else self.appearance.apply(view.name, image)
+
+    def _pixel_weight(self, view: TrainView) -> torch.Tensor | None:
+        """The per-pixel loss weight of `view`: its pixels' solid angle for a panorama when
+        solid_angle_weighting is on, else None (a plain mean)."""
+        cam = view.camera
+        if not self.cfg.solid_angle_weighting or getattr(cam, "kind", None) != "equirect":
+            return None
+        key = (int(cam.height), int(cam.width))
+        w = self._weights.get(key)
+        if w is None:
+            w = self._weights[key] = solid_angle_weight(*key, dtype=view.image.dtype, device=self.device)
+        return w
 
     # -- one iteration -------------------------------------------------------
     def _next_view(self) -> TrainView:
@@ -198,8 +218,11 @@ class Trainer:
         out = render(g, view.viewmat, view.camera, backend=cfg.backend, background=self._bg,
                      sh_degree=self.active_sh)
         pred = self._as_trained(view, out.image)
-        photo, l1, s = photometric_loss(pred, view.image, cfg.lambda_l1, cfg.lambda_dssim, mask=view.mask)
+        photo, l1, s = photometric_loss(pred, view.image, cfg.lambda_l1, cfg.lambda_dssim, mask=view.mask,
+                                        weight=self._pixel_weight(view))
         loss = photo
+        if cfg.lambda_scale > 0:
+            loss = loss + cfg.lambda_scale * torch.exp(g.log_scales).mean() / cfg.extent
         if self.appearance is not None and cfg.lambda_appearance > 0:
             loss = loss + cfg.lambda_appearance * self.appearance.regulariser()
         lay = None
@@ -233,7 +256,8 @@ class Trainer:
                 self.stats.add(out.means2d.grad if out.means2d.requires_grad else None, out.visible, out.radii,
                                view.camera.pixel_scale[0], gradient_scale(view.camera))
                 if it >= cfg.densify_from and it % cfg.densify_every == 0:
-                    after_reset = cfg.opacity_reset_every > 0 and it > cfg.opacity_reset_every
+                    after_reset = (it >= cfg.size_prune_from if cfg.size_prune_from is not None
+                                   else cfg.opacity_reset_every > 0 and it > cfg.opacity_reset_every)
                     res = densify_and_prune(
                         g, self.opt, self.stats,
                         grad_threshold=cfg.densify_grad_threshold, percent_dense=cfg.percent_dense,

@@ -69,6 +69,10 @@ def simulate_command(
     with_depth: bool = typer.Option(
         False, "--with-depth", help="Also supply the gt depth as depth/ input (train views)."
     ),
+    test_placement: str = typer.Option(
+        "near", "--test-placement", help="Test cameras 'near' the train cameras (0.35-1 m, interpolation) or "
+        "'away' from them (>= 1 m, anywhere in the free space: a walk-through of a sparse capture).",
+    ),
     profile: bool = typer.Option(False, "--profile", help="Print the time each effect / phase took."),
 ) -> SimulationResult:
     """Write a synthetic indoor scene folder with exact ground truth (depth, layout, floor plan)."""
@@ -87,6 +91,7 @@ def simulate_command(
         aa_samples=aa_samples,
         with_layout=with_layout,
         with_depth=with_depth,
+        test_placement=test_placement,
     )
     console.print(
         f"wrote {escape(str(result.manifest_path))} ({len(result.views)} views, {height}x{2 * height}, "

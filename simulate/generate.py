@@ -215,12 +215,14 @@ def generate_scene(
     aa_samples: int = 2,
     with_layout: bool = False,
     with_depth: bool = False,
+    test_placement: str = "near",
 ) -> SimulationResult:
     """Simulate a scene and write its folder atomically (a sibling temp folder, renamed on success).
 
     `views` train and `test_views` test panoramas of `height` x 2`height` pixels. `effects`:
     'all', 'none', a comma-separated list or a set of names from EFFECTS ('all' for the demo
-    preset means its noise-free set). Raises ValueError on bad arguments.
+    preset means its noise-free set). `test_placement`: "near" the train cameras (default) or
+    "away" from them (simulate.geometry.TEST_PLACEMENTS). Raises ValueError on bad arguments.
     """
     t_start = time.perf_counter()
     _check_args(preset, views, test_views, height, seed, aa_samples)
@@ -236,7 +238,7 @@ def generate_scene(
     t0 = time.perf_counter()
     rngs = _rngs(seed)
     world = build_world(preset, rngs["room"])
-    cams = place_cameras(world, int(views), int(test_views), rngs["cameras"])
+    cams = place_cameras(world, int(views), int(test_views), rngs["cameras"], test_placement)
     timings["scene"] = time.perf_counter() - t0
     boxes: list[Box] = []
     if "furniture" in fx:

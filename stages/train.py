@@ -76,6 +76,10 @@ class Params(BaseModel):
     layout_reg: bool = Field(default=True, description="L_layout on/off (ablation).")
     lambda_l1: float = Field(default=0.8, ge=0)
     lambda_dssim: float = Field(default=0.2, ge=0)
+    solid_angle_weighting: bool = Field(
+        default=False, description="360: weigh each panorama pixel's L1 and SSIM by its solid angle (cos latitude).")
+    lambda_scale: float = Field(
+        default=0.0, ge=0, description="Weight of the mean-scale penalty (mean Gaussian scale / extent; official 360-GS).")
     lambda_layout: float | None = Field(
         default=None, ge=0, description="λ3; default 0.1 for <= 8 training views, 0.01 above (paper).")
     lr_position_init: float = Field(default=1.6e-4, gt=0, description="× scene extent.")
@@ -101,6 +105,9 @@ class Params(BaseModel):
         default=0.1, gt=0, description="Prune scale > this × extent after the first opacity reset (None = off).")
     max_screen_radius: float | None = Field(
         default=None, gt=0, description="Prune a screen radius > this (radians) after the first reset.")
+    size_prune_from: int | None = Field(
+        default=None, ge=0, description="Iteration from which max_world_scale / max_screen_radius prune "
+                                        "(None = after the first opacity reset).")
     max_gaussians: int | None = Field(default=None, ge=1, description="Densification cap.")
     random_points: int | None = Field(default=None, ge=1, description="Gaussians of the random init.")
     max_init_points: int | None = Field(
@@ -261,6 +268,8 @@ def make_config(p: Params, num_train_views: int, extent: float, device: str = "c
         densify_every=p.densify_every, densify_grad_threshold=p.densify_grad_threshold,
         percent_dense=p.percent_dense, min_opacity=p.min_opacity, opacity_reset_every=int(reset),
         max_world_scale=p.max_world_scale, max_screen_radius=p.max_screen_radius,
+        size_prune_from=p.size_prune_from, solid_angle_weighting=p.solid_angle_weighting,
+        lambda_scale=p.lambda_scale,
         max_gaussians=p.resolved("max_gaussians"),
         background=tuple(float(x) for x in p.background), seed=p.seed, backend=p.backend, device=device,
         log_every=p.log_every, checkpoint_every=p.checkpoint_every,

@@ -85,3 +85,36 @@ def test_ssim_and_psnr_references():
     assert psnr(c, a) == pytest.approx(10 * math.log10(1 / mse), rel=1e-6)
     total, l1, s = photometric_loss(b, a)
     assert total.item() == pytest.approx(0.8 * (b - a).abs().mean().item() + 0.2 * (1 - s.item()), rel=1e-6)
+
+
+def test_solid_angle_weight_is_cos_latitude_with_mean_one():
+    from gaussians.losses import solid_angle_weight
+
+    w = solid_angle_weight(8, 16, dtype=torch.float64)
+    assert w.shape == (8, 16) and w.mean().item() == pytest.approx(1.0)
+    lat = (0.5 - (np.arange(8) + 0.5) / 8) * math.pi
+    ratio = w[:, 0].numpy() / np.cos(lat)
+    assert np.allclose(ratio, ratio[0])  # proportional to each row's solid angle
+    assert torch.all(w[:, 0] == w[:, 5])  # constant along a row
+
+
+def test_photometric_loss_weighted_means():
+    from gaussians.losses import ssim_map
+
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.rand(12, 20, 3, generator=g, dtype=torch.float64), torch.rand(12, 20, 3, generator=g,
+                                                                               dtype=torch.float64)
+    # uniform weights: exactly the plain means
+    plain = photometric_loss(a, b)
+    flat = photometric_loss(a, b, weight=torch.full((12, 20), 3.0, dtype=torch.float64))
+    for x, y in zip(plain, flat):
+        assert x.item() == pytest.approx(y.item(), rel=1e-12)
+    assert ssim_map(a, b).mean().item() == pytest.approx(ssim(a, b).item(), rel=1e-12)
+    # all weight on one row: that row's L1 and SSIM, masked pixels excluded
+    w = torch.zeros(12, 20, dtype=torch.float64)
+    w[3] = 1.0
+    mask = torch.ones(12, 20, dtype=torch.bool)
+    mask[3, :10] = False
+    _, l1, s = photometric_loss(a, b, weight=w, mask=mask)
+    assert l1.item() == pytest.approx((a - b)[3, 10:].abs().mean().item(), rel=1e-12)
+    assert s.item() == pytest.approx(ssim_map(a, b, mask=mask)[3, 10:].mean().item(), rel=1e-12)
