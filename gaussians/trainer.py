@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from gaussians.appearance import Appearance
+from gaussians.crop_loss import CropResampler, crop_photometric_loss
 from gaussians.densify import DensifyStats, densify_and_prune, gradient_scale, reset_opacity
 from gaussians.losses import layout_loss, photometric_loss, psnr, psnr_tensor, solid_angle_weight
 from gaussians.model import PARAM_NAMES, Gaussians, render
@@ -56,6 +57,12 @@ class TrainConfig:
     solid_angle_weighting: bool = False
     #: λ · mean Gaussian scale / extent (the official 360-GS code's mean-scale penalty on floaters)
     lambda_scale: float = 0.0
+    #: largest ratio of a Gaussian's longest axis to its second longest, enforced after every step
+    #: (None = free): keeps needles from forming (a flat disc, ratio ~1, is unaffected)
+    max_anisotropy: float | None = None
+    #: measure a panorama's L1 and D-SSIM on its eight 120° perspective crops (resampled from the
+    #: render, gaussians/crop_loss.py) instead of on the equirectangular image
+    crop_loss: bool = False
     # learning rates (3DGS); the position rates are multiplied by the scene extent
     lr_position_init: float = 1.6e-4
     lr_position_final: float = 1.6e-6
@@ -83,6 +90,10 @@ class TrainConfig:
     max_gaussians: int | None = 200_000
     # misc
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: train against a random background colour each iteration (drawn from the trainer's generator):
+    #: a pixel left partly transparent then cannot match its ground truth, so surfaces become opaque
+    #: (every ray of an indoor panorama ends on one); renders for evaluation use `background`
+    random_background: bool = False
     seed: int = 0
     backend: str | None = None
     #: torch device of the model, images, optimiser and losses; not in the fingerprint, so a
@@ -175,6 +186,8 @@ class Trainer:
         self.extra_fingerprint = ""
         self._in_step = False
         self._weights: dict[tuple[int, int], torch.Tensor] = {}
+        self._resamplers: dict = {}
+        self._crops: dict = {}
 
     def _new_appearance(self) -> Appearance | None:
         if not self.cfg.appearance:
@@ -185,6 +198,22 @@ class Trainer:
     def _as_trained(self, view: TrainView, image: torch.Tensor) -> torch.Tensor:
         """A render as the loss sees it: through the view's appearance transform, when on."""
         return image if self.appearance is None else self.appearance.apply(view.name, image)
+
+    def _crop_targets(self, view: TrainView):
+        """(resampler, ground-truth crops, crop masks) of a panorama view when crop_loss is on, else None."""
+        if not self.cfg.crop_loss or getattr(view.camera, "kind", None) != "equirect":
+            return None
+        hit = self._crops.get(view.name)
+        if hit is None:
+            key = (int(view.camera.height), int(view.camera.width))
+            rs = self._resamplers.get(key)
+            if rs is None:
+                rs = self._resamplers[key] = CropResampler(*key, dtype=view.image.dtype, device=self.device)
+            with torch.no_grad():
+                gt = rs(view.image)
+                m = None if view.mask is None else rs(view.mask[..., None].to(view.image.dtype))[:, 0] > 0.999
+            hit = self._crops[view.name] = (rs, gt, m)
+        return hit
 
     def _pixel_weight(self, view: TrainView) -> torch.Tensor | None:
         """The per-pixel loss weight of `view`: its pixels' solid angle for a panorama when
@@ -215,11 +244,18 @@ class Trainer:
             self.active_sh = min(self.active_sh + 1, cfg.sh_degree, self.g.sh_degree)
         view = self._next_view()
         g = self.g
-        out = render(g, view.viewmat, view.camera, backend=cfg.backend, background=self._bg,
+        bg = self._bg
+        if cfg.random_background:
+            bg = torch.rand(3, generator=self.gen, dtype=self._bg.dtype).to(self.device)
+        out = render(g, view.viewmat, view.camera, backend=cfg.backend, background=bg,
                      sh_degree=self.active_sh)
         pred = self._as_trained(view, out.image)
-        photo, l1, s = photometric_loss(pred, view.image, cfg.lambda_l1, cfg.lambda_dssim, mask=view.mask,
-                                        weight=self._pixel_weight(view))
+        crops = self._crop_targets(view)
+        if crops is not None:
+            photo, l1, s = crop_photometric_loss(pred, crops[1], crops[0], cfg.lambda_l1, cfg.lambda_dssim, crops[2])
+        else:
+            photo, l1, s = photometric_loss(pred, view.image, cfg.lambda_l1, cfg.lambda_dssim, mask=view.mask,
+                                            weight=self._pixel_weight(view))
         loss = photo
         if cfg.lambda_scale > 0:
             loss = loss + cfg.lambda_scale * torch.exp(g.log_scales).mean() / cfg.extent
@@ -251,6 +287,8 @@ class Trainer:
             # quaternions: keep them away from zero (the renderer copes, Adam's steps would not)
             qn = torch.linalg.vector_norm(g.quats, dim=-1, keepdim=True)
             g.quats.copy_(torch.where(qn > 1e-8, g.quats, g.quats.new_tensor([1.0, 0, 0, 0])))
+            if cfg.max_anisotropy is not None:
+                clamp_anisotropy_(g.log_scales, cfg.max_anisotropy)
 
             if it < cfg.densify_until:
                 self.stats.add(out.means2d.grad if out.means2d.requires_grad else None, out.visible, out.radii,
@@ -521,6 +559,17 @@ class Trainer:
             with open(self.log_path, "w") as f:
                 for rec in self.records:
                     f.write(json.dumps(rec) + "\n")
+
+
+def clamp_anisotropy_(log_scales: torch.Tensor, max_ratio: float) -> None:
+    """In place: shorten every Gaussian's longest axis to at most `max_ratio` × its second longest
+    (log scales [N,3]); the two shorter axes are untouched."""
+    top2 = torch.topk(log_scales, 2, dim=1)
+    limit = top2.values[:, 1] + math.log(max_ratio)
+    over = top2.values[:, 0] > limit
+    if bool(over.any()):
+        rows = torch.nonzero(over, as_tuple=False).squeeze(1)
+        log_scales[rows, top2.indices[rows, 0]] = limit[rows]
 
 
 def _num(x):

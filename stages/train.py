@@ -53,6 +53,16 @@ PRESETS: dict[str, dict] = {
 }
 
 
+#: Defaults that depend on the projection, for the parameters left unset (None). The 360 path's
+#: controls for sparse captures, measured in docs/training.md ("Sparse captures: 360° against crops");
+#: the perspective baselines keep 3DGS's behaviour.
+PROJECTION_DEFAULTS: dict[str, dict] = {
+    "360": dict(random_background=False),
+    "crops": dict(random_background=False),
+    "cubemap": dict(random_background=False),
+}
+
+
 class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -80,6 +90,12 @@ class Params(BaseModel):
         default=False, description="360: weigh each panorama pixel's L1 and SSIM by its solid angle (cos latitude).")
     lambda_scale: float = Field(
         default=0.0, ge=0, description="Weight of the mean-scale penalty (mean Gaussian scale / extent; official 360-GS).")
+    max_anisotropy: float | None = Field(
+        default=None, ge=1, description="Longest / second-longest axis of a Gaussian at most this (None = free): "
+                                       "no needles.")
+    crop_loss: bool = Field(
+        default=False, description="360: measure L1 and D-SSIM on the eight 120° perspective crops resampled "
+                                   "from the rendered panorama instead of on the panorama itself.")
     lambda_layout: float | None = Field(
         default=None, ge=0, description="λ3; default 0.1 for <= 8 training views, 0.01 above (paper).")
     lr_position_init: float = Field(default=1.6e-4, gt=0, description="× scene extent.")
@@ -115,6 +131,10 @@ class Params(BaseModel):
     init_opacity: float = Field(default=0.1, gt=0, lt=1)
     layout_flatten: float = Field(default=0.1, gt=0, le=1, description="Thickness / width of layout Gaussians.")
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    random_background: bool | None = Field(
+        default=None, description="Train against a random background colour each iteration (opaque surfaces); "
+                                  "evaluation renders use `background`. None = the projection's default "
+                                  "(on for 360, off for the crops).")
     seed: int = Field(default=0, ge=0, le=2**32 - 1)
     backend: Literal["cpp", "cuda", "torch"] | None = Field(
         default=None, description="splatting backend; None = its default for the device (cpp on CPU, cuda on CUDA).")
@@ -129,8 +149,13 @@ class Params(BaseModel):
     lr_appearance: float = Field(default=1e-3, gt=0, description="Adam learning rate of the transforms.")
 
     def resolved(self, key: str):
+        """The value of `key`: as set, else the preset's, else the projection's default (PROJECTION_DEFAULTS)."""
         v = getattr(self, key)
-        return PRESETS[self.preset][key] if v is None else v
+        if v is not None:
+            return v
+        if key in PRESETS[self.preset]:
+            return PRESETS[self.preset][key]
+        return PROJECTION_DEFAULTS[self.projection].get(key)
 
     @model_validator(mode="after")
     def _crops_form_rings(self):
@@ -269,9 +294,10 @@ def make_config(p: Params, num_train_views: int, extent: float, device: str = "c
         percent_dense=p.percent_dense, min_opacity=p.min_opacity, opacity_reset_every=int(reset),
         max_world_scale=p.max_world_scale, max_screen_radius=p.max_screen_radius,
         size_prune_from=p.size_prune_from, solid_angle_weighting=p.solid_angle_weighting,
-        lambda_scale=p.lambda_scale,
+        lambda_scale=p.lambda_scale, max_anisotropy=p.max_anisotropy, crop_loss=p.crop_loss,
         max_gaussians=p.resolved("max_gaussians"),
-        background=tuple(float(x) for x in p.background), seed=p.seed, backend=p.backend, device=device,
+        background=tuple(float(x) for x in p.background), random_background=bool(p.resolved("random_background")),
+        seed=p.seed, backend=p.backend, device=device,
         log_every=p.log_every, checkpoint_every=p.checkpoint_every,
         appearance=p.appearance, lambda_appearance=p.lambda_appearance, lr_appearance=p.lr_appearance,
     )
