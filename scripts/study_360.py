@@ -42,7 +42,8 @@ def parse_variant(text: str) -> tuple[str, dict]:
     out = dict(VARIANTS.get(base, {}))
     for item in filter(None, rest.split(",")):
         k, _, v = item.partition("=")
-        out[k.strip()] = yaml.safe_load(v)
+        value = yaml.safe_load(v)
+        out[k.strip()] = str(value) if k.strip() == "projection" else value  # "360" is a name, not a number
     return name, out
 
 

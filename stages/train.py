@@ -57,9 +57,9 @@ PRESETS: dict[str, dict] = {
 #: controls for sparse captures, measured in docs/training.md ("Sparse captures: 360° against crops");
 #: the perspective baselines keep 3DGS's behaviour.
 PROJECTION_DEFAULTS: dict[str, dict] = {
-    "360": dict(random_background=False),
-    "crops": dict(random_background=False),
-    "cubemap": dict(random_background=False),
+    "360": dict(random_background=False, lr_scale=0.5),
+    "crops": dict(random_background=False, lr_scale=1.0),
+    "cubemap": dict(random_background=False, lr_scale=1.0),
 }
 
 
@@ -98,6 +98,10 @@ class Params(BaseModel):
                                    "from the rendered panorama instead of on the panorama itself.")
     lambda_layout: float | None = Field(
         default=None, ge=0, description="λ3; default 0.1 for <= 8 training views, 0.01 above (paper).")
+    lr_scale: float | None = Field(
+        default=None, gt=0, description="Multiplies every learning rate below. None = the projection's default: "
+        "0.5 for 360 (a panorama iteration updates every Gaussian, a crop iteration about a quarter of them), "
+        "1 for the crops.")
     lr_position_init: float = Field(default=1.6e-4, gt=0, description="× scene extent.")
     lr_position_final: float = Field(default=1.6e-6, gt=0, description="× scene extent.")
     lr_sh_dc: float = Field(default=2.5e-3, ge=0)
@@ -280,14 +284,15 @@ def build_views(images: dict[str, np.ndarray], viewmats: dict[str, np.ndarray], 
 def make_config(p: Params, num_train_views: int, extent: float, device: str = "cpu") -> TrainConfig:
     iterations = int(p.resolved("iterations"))
     reset = p.resolved("opacity_reset_every")
+    lr = float(p.resolved("lr_scale"))
     return TrainConfig(
         iterations=iterations,
         lambda_l1=p.lambda_l1, lambda_dssim=p.lambda_dssim,
         lambda_layout=p.lambda_layout if p.lambda_layout is not None else default_lambda_layout(num_train_views),
         layout_reg=p.layout_reg,
-        lr_position_init=p.lr_position_init, lr_position_final=p.lr_position_final,
-        lr_sh_dc=p.lr_sh_dc, lr_sh_rest=p.lr_sh_rest, lr_opacity=p.lr_opacity, lr_scaling=p.lr_scaling,
-        lr_rotation=p.lr_rotation, extent=float(extent),
+        lr_position_init=lr * p.lr_position_init, lr_position_final=lr * p.lr_position_final,
+        lr_sh_dc=lr * p.lr_sh_dc, lr_sh_rest=lr * p.lr_sh_rest, lr_opacity=lr * p.lr_opacity,
+        lr_scaling=lr * p.lr_scaling, lr_rotation=lr * p.lr_rotation, extent=float(extent),
         sh_degree=p.sh_degree, sh_degree_every=p.sh_degree_every,
         densify_from=int(p.resolved("densify_from")), densify_until=int(p.resolved("densify_until")),
         densify_every=p.densify_every, densify_grad_threshold=p.densify_grad_threshold,
