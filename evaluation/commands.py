@@ -77,6 +77,10 @@ def ablate_command(
         str, typer.Option("--baseline", help="Projection of the 3D-GS* steps: crops (the paper's eight 120° crops) "
                                              "or cubemap.")
     ] = "crops",
+    equal: Annotated[
+        str, typer.Option("--equal", help="Also compare the projections at an equal budget: time (training seconds), "
+                                          "pixels (training pixels rendered) or none (equal iterations only).")
+    ] = "time",
     config: ConfigOpt = None,
     set_: SetOpt = None,
 ) -> None:
@@ -91,8 +95,10 @@ def ablate_command(
     seeds = seeds if seeds is not None else PAPER_SEEDS if paper else 1
     command = "pano-pipe " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:2] == ["ablate"] else None
     res = run_ablation(engine.scene, engine.out_dir, cfg, seeds=seeds, iterations=iterations,
-                       log=console.print, baseline=baseline, command=command)
+                       log=console.print, baseline=baseline, command=command, equal=equal)
     console.print(res["table"])
+    if res.get("projection_table"):
+        console.print(res["projection_table"])
     for n in res["notes"]:
         console.print(n)
     console.print("[bold]ablation:[/] " + escape(f"{res['markdown']} · {res['json']} · {res['chart']}"))

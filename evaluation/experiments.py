@@ -187,6 +187,7 @@ def summarise_run(run_dir: Path, results=None) -> dict:
         "num_gaussians": tr["data"].get("num_gaussians"),
         "iterations": tr["data"].get("iterations"),
         "train_images": tr["data"].get("train_images"),
+        "pixels_per_image": _pixels_per_image(tr["data"]),
         "fps": ev["data"].get("fps"),
         "split": ev["data"].get("split"),
         "eval_resolution": ev["data"].get("resolution"),
@@ -195,6 +196,14 @@ def summarise_run(run_dir: Path, results=None) -> dict:
                                                   "preset", "appearance")},
         "cached": ran.get("train") == "cached",
     }
+
+
+def _pixels_per_image(train: dict) -> int | None:
+    """Pixels of one training image: a crop (its side squared) or the training panorama."""
+    crops, res = train.get("crops"), train.get("resolution")
+    if crops:
+        return int(crops["size"]) ** 2
+    return int(res[0]) * int(res[1]) if res else None
 
 
 def mean_std(values: list[float]) -> tuple[float, float]:
@@ -313,14 +322,18 @@ def paper_config(base_config: dict) -> dict:
 
 def run_ablation(scene, base_dir: Path, base_config: dict, seeds: int = 1, iterations: int | None = None,
                  variants=None, out_dir: Path | None = None, log=print, baseline: str = "crops",
-                 command: str | None = None) -> dict:
+                 command: str | None = None, equal: str = "time") -> dict:
     """Run the ablation grid; writes ablation.{md,json,png} into out_dir (default <run>/ablate/).
-    `command` (the command line) is written into ablation.md."""
+    `command` (the command line) is written into ablation.md. `equal` (EQUAL_BUDGETS): after the
+    grid, the cheaper of the two projection rows (PROJECTION_PAIR) is trained again with as many
+    iterations as the other's budget buys (time or pixels), and both comparisons are tabled."""
     from pipeline.engine import Engine
     from pipeline.registry import build_registry
 
     if seeds < 1:
         raise PanoError("--seeds", "must be at least 1")
+    if equal not in EQUAL_BUDGETS:
+        raise PanoError("--equal", f"must be one of {', '.join(EQUAL_BUDGETS)}, got {equal!r}")
     variants = ablation_variants(baseline) if variants is None else variants
     out_dir = Path(out_dir) if out_dir is not None else run_path(base_dir, "ablate")
     reg = build_registry()
@@ -331,7 +344,8 @@ def run_ablation(scene, base_dir: Path, base_config: dict, seeds: int = 1, itera
     out_dir.mkdir(parents=True, exist_ok=True)
 
     rows, warnings = [], []
-    for key, label, settings in variants:
+
+    def run_row(key: str, label: str, settings: dict, iterations: int | None) -> AblationRow:
         extra = dict(settings)
         if iterations is not None:
             extra["iterations"] = iterations
@@ -355,33 +369,124 @@ def run_ablation(scene, base_dir: Path, base_config: dict, seeds: int = 1, itera
                     warnings.append(msg)
                     log(f"warning: {msg}")
             row.runs.append(summary)
-        rows.append(row)
+        return row
+
+    for key, label, settings in variants:
+        rows.append(run_row(key, label, settings, iterations))
+    plan = equal_budget_plan(rows, equal)
+    equal_row = None
+    if plan is not None:
+        cheap, n_iter, ratio = plan
+        log(f"ablate: equal {equal}: {cheap.label} costs {ratio:.2f}x less per iteration -> {n_iter} iterations")
+        equal_row = run_row(f"{cheap.key}-equal-{equal}", f"{cheap.label} (equal {equal})", cheap.settings, n_iter)
 
     notes = ordering_notes(rows)
     table = ablation_table(rows)
+    proj_table, proj_notes = projection_table(rows, equal_row, equal)
+    notes += proj_notes
     plot_ablation(rows, out_dir / "ablation.png")
     split = {r["split"] for row in rows for r in row.runs}
     md = [f"# Ablation: {scene.name}", ""]
     if command:
         md += [f"`{command}`", ""]
-    md += [setting_line(rows, seeds, iterations, split, scene), "", table, "", *[f"- {n}" for n in notes]]
+    md += [setting_line(rows, seeds, iterations, split, scene), "", table, ""]
+    if proj_table:
+        md += ["Projection at equal budgets (" + (f"equal {equal}: the cheaper projection trained for as many "
+               "iterations as the other's budget buys" if equal_row is not None else "equal iterations only") +
+               "):", "", proj_table, ""]
+    md += [*[f"- {n}" for n in notes]]
     if warnings:
         md += ["", *[f"> warning: {w}" for w in warnings]]
     md += ["", "![ablation](ablation.png)", ""]
     (out_dir / "ablation.md").write_text("\n".join(md))
+    def row_doc(r: AblationRow) -> dict:
+        return {"key": r.key, "label": r.label, "settings": r.settings,
+                **{m: dict(zip(("mean", "std"), r.stat(m))) for m, _ in TABLE_METRICS + TABLE_COSTS},
+                "paper_psnr": PAPER_PSNR.get(r.label), "runs": r.runs}
+
     doc = {
         "scene": scene.name, "seeds": seeds, "iterations": iterations, "command": command, "notes": notes,
-        "warnings": warnings,
-        "variants": [
-            {"key": r.key, "label": r.label, "settings": r.settings,
-             **{m: dict(zip(("mean", "std"), r.stat(m))) for m, _ in TABLE_METRICS + TABLE_COSTS},
-             "paper_psnr": PAPER_PSNR.get(r.label), "runs": r.runs}
-            for r in rows
-        ],
+        "warnings": warnings, "variants": [row_doc(r) for r in rows],
+        "equal_budget": {"budget": equal, "row": None if equal_row is None else row_doc(equal_row),
+                         "table": proj_table},
     }
     (out_dir / "ablation.json").write_text(json.dumps(doc, indent=1, default=_json_default))
     return {"table": table, "notes": notes, "markdown": out_dir / "ablation.md", "json": out_dir / "ablation.json",
-            "chart": out_dir / "ablation.png", "rows": rows}
+            "chart": out_dir / "ablation.png", "rows": rows, "equal_row": equal_row, "projection_table": proj_table}
+
+# ----------------------------------------------------------------------------- equal budget
+
+#: How `ablate` puts the two projections on an equal footing beyond equal iterations: "time" (the
+#: same training wall time, from the equal-iteration runs' seconds per iteration), "pixels" (the
+#: same number of training pixels rendered: a crop has fewer than a panorama) or "none".
+EQUAL_BUDGETS = ("time", "pixels", "none")
+#: The two rows the projection comparison is about: the baseline with layout init, and the 360 row.
+PROJECTION_PAIR = ("layout-init", "layout-reg")
+
+
+def cost_per_iteration(run: dict, budget: str) -> float | None:
+    """What one iteration of `run` costs under `budget`: training seconds, or pixels rendered."""
+    if budget == "time":
+        t, it = run.get("train_seconds"), run.get("iterations")
+        return t / it if t and it else None
+    if budget == "pixels":
+        return run.get("pixels_per_image")
+    raise ValueError(budget)
+
+
+def equal_budget_plan(rows: list[AblationRow], budget: str) -> tuple[AblationRow, int, float] | None:
+    """(the cheaper row of PROJECTION_PAIR, the iterations it gets at the other's budget, the cost
+    ratio) or None when there is nothing to compare (a row missing, costs unknown, equal costs)."""
+    if budget == "none":
+        return None
+    pair = {r.key: r for r in rows if r.key in PROJECTION_PAIR}
+    if len(pair) != 2 or any(not r.runs for r in pair.values()):
+        return None
+    cost = {}
+    for k, r in pair.items():
+        c = [cost_per_iteration(run, budget) for run in r.runs]
+        if any(v is None for v in c):
+            return None
+        cost[k] = float(np.mean(c))
+    cheap, dear = sorted(PROJECTION_PAIR, key=lambda k: cost[k])
+    ratio = cost[dear] / cost[cheap]
+    if ratio < 1.05:  # within 5 %: equal iterations already are an equal budget
+        return None
+    iters = float(np.mean([run["iterations"] for run in pair[dear].runs]))
+    return pair[cheap], int(round(iters * ratio)), ratio
+
+
+def projection_table(rows: list[AblationRow], extra: AblationRow | None, budget: str) -> tuple[str, list[str]]:
+    """The projection comparison (baseline + layout init against 360 + layout reg) at equal iterations
+    and, with `extra` (the cheaper projection rerun at the other's budget), at equal `budget`;
+    returns (markdown table, notes)."""
+    pair = {r.key: r for r in rows if r.key in PROJECTION_PAIR}
+    if len(pair) != 2:
+        return "", []
+    base, p360 = pair[PROJECTION_PAIR[0]], pair[PROJECTION_PAIR[1]]
+    lines = ["| budget | " + f"{base.label} PSNR / SSIM | {p360.label} PSNR / SSIM | iterations (base / 360) | "
+             "train s (base / 360) | 360 − base PSNR (dB) | 360 − base SSIM |", "|" + "---|" * 7]
+    notes = []
+    settings = [("equal iterations", base, p360)]
+    if extra is not None:
+        settings.append((f"equal {budget}", extra if extra.settings["projection"] != "360" else base,
+                         extra if extra.settings["projection"] == "360" else p360))
+    for name, b, t in settings:
+        (pb, sb), (pt, st) = b.stat("psnr"), t.stat("psnr")
+        (qb, qsb), (qt, qst) = b.stat("ssim"), t.stat("ssim")
+        dp, sp = pt - pb, math.hypot(sb, st)
+        dq, sq = qt - qb, math.hypot(qsb, qst)
+        n = min(len(b.runs), len(t.runs))
+        lines.append(
+            f"| {name} | {pb:.2f} / {qb:.3f} | {pt:.2f} / {qt:.3f} | {b.stat('iterations')[0]:.0f} / "
+            f"{t.stat('iterations')[0]:.0f} | {b.stat('train_seconds')[0]:.0f} / {t.stat('train_seconds')[0]:.0f} | "
+            f"{dp:+.2f} (± {sp:.2f}) | {dq:+.3f} (± {sq:.3f}) |")
+        verdict = ("beats" if dp > sp and dq > sq else "does not clearly beat") if n >= 2 else \
+            ("beats" if dp > 0 and dq > 0 else "does not beat")
+        notes.append(f"{'✓' if verdict == 'beats' else '✗'} at {name}, 360 {verdict} {base.settings['projection']}: "
+                     f"{dp:+.2f} dB PSNR (spread {sp:.2f}), {dq:+.3f} SSIM (spread {sq:.3f})")
+    return "\n".join(lines), notes
+
 
 
 def setting_line(rows: list[AblationRow], seeds: int, iterations: int | None, split: set, scene) -> str:

@@ -518,6 +518,59 @@ def view_images(edir: Path, v: dict, scene, view, img_dir: Path) -> tuple[list[t
     return items, notes
 
 
+def ablation_side_by_side(ablation_json: Path, doc: _Doc, img_dir: Path, max_views: int = 2) -> None:
+    """Held-out render, error and depth of the ablation's baseline (+ layout init) and 360 (+ layout reg)
+    models side by side (seed 0 of each), so floaters and blur are visible: for the test view where
+    the two differ most in PSNR and the first test view. Both depths share one colour scale."""
+    from evaluation.experiments import PROJECTION_PAIR
+    from evaluation.visuals import DEPTH_UNITS, depth_rgb, depth_vmax, write_colorbar
+    from panogeom.images import write_rgb
+
+    try:
+        variants = {v["key"]: v for v in json.loads(ablation_json.read_text()).get("variants", [])}
+    except (OSError, ValueError):
+        return
+    pair = [variants.get(k) for k in PROJECTION_PAIR]
+    if any(v is None or not v.get("runs") for v in pair):
+        return
+    evals = []
+    for v in pair:
+        ev = read_artifact(Path(v["runs"][0]["dir"]), "evaluate")
+        if ev is None:
+            return
+        evals.append((v, Path(v["runs"][0]["dir"]) / "evaluate", {r["view"]: r for r in ev["data"]["views"]}))
+    common = [name for name in evals[0][2] if name in evals[1][2]]
+    if not common:
+        return
+    gap = sorted(common, key=lambda n: -abs((evals[1][2][n]["psnr"] or 0) - (evals[0][2][n]["psnr"] or 0)))
+    views = list(dict.fromkeys([gap[0], common[0]]))[:max_views]
+    doc.h(3, "Held-out views: baseline against 360", "ablate-views")
+    doc.p(f"Seed 0 of {pair[0]['label']} ({pair[0]['settings'].get('projection')}) and of {pair[1]['label']} "
+          "(360): render, |error| and rendered depth of the same held-out panorama; depth on one scale.")
+    for name in views:
+        depths = []
+        for _, edir, rows in evals:
+            npy = edir / rows[name]["depth_npy"] if rows[name].get("depth_npy") else None
+            depths.append(np.load(npy) if npy is not None and npy.is_file() else None)
+        vmax = max((depth_vmax(d) for d in depths if d is not None), default=None)
+        cbar = None
+        if vmax is not None:
+            cbar = (img_dir / f"ablate-{name}-colorbar-depth.png", f"{DEPTH_UNITS}, 0 … {vmax:.3g}")
+            write_colorbar(cbar[0], 0.0, vmax, "turbo", DEPTH_UNITS)
+        first = evals[0][2][name]
+        doc.p(f"{name}: ground truth")
+        doc.images([(evals[0][1] / first["gt"], "ground truth")], f"ablate-{name}")
+        for (v, edir, rows), depth in zip(evals, depths):
+            r, tag = rows[name], v["key"]
+            items = [(edir / r["render"], f"{v['label']}: render, PSNR {r['psnr']:.2f} dB"),
+                     (edir / r["error"], f"{v['label']}: |error|")]
+            if depth is not None:
+                png = img_dir / f"ablate-{name}-{tag}-depth.png"
+                write_rgb(png, depth_rgb(depth, vmax=vmax))
+                items.append((png, f"{v['label']}: rendered depth", cbar))
+            doc.images([it for it in items if Path(it[0]).is_file()], f"ablate-{name}-{tag}")
+
+
 # ----------------------------------------------------------------------------- assembling
 
 
@@ -863,6 +916,8 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
         except ValueError:
             pass
         doc.images([(chart, f"{stem} ({sub}/{stem}.md)")], sub)
+        if sub == "ablate":
+            ablation_side_by_side(doc_json, doc, img_dir)
 
     out_dir.mkdir(parents=True, exist_ok=True)
     page = (

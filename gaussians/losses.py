@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
-__all__ = ["l1_loss", "ssim", "psnr", "psnr_tensor", "layout_loss", "photometric_loss", "LAYOUT_EPS"]
+__all__ = ["l1_loss", "ssim", "psnr", "psnr_tensor", "layout_loss", "photometric_loss", "LAYOUT_EPS",
+           "ssim_map", "solid_angle_weight"]
 
 #: Displacement (metres) below which L_layout fades to 0: it regularises the
 #: 0/0 at μ = u0 (value 0, zero and finite gradient there) and changes the
@@ -43,30 +46,34 @@ def _blur(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
 
 def ssim(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5,
-         mask: torch.Tensor | None = None) -> torch.Tensor:
+         mask: torch.Tensor | None = None, weight: torch.Tensor | None = None) -> torch.Tensor:
     """Mean SSIM of two [H,W,3] (or [B,3,H,W]) images in [0,1], as the 3DGS code computes it
-    (Gaussian window, zero padding). With `mask` ([H,W] bool): masked-out pixels are zeroed in
-    both images (their content has no effect) and the map is averaged over valid pixels only.
-    Differentiable in `pred` only (its gradient is written out, see _SSIM)."""
+    (Gaussian window, zero padding). With `mask` ([H,W] bool, or [B,H,W] for a batch): masked-out
+    pixels are zeroed in both images (their content has no effect) and the map is averaged over
+    valid pixels only. With `weight` ([H,W] or [B,H,W], >= 0): the weighted mean of the map
+    (channel mean) over the valid pixels instead. Differentiable in `pred` only (its gradient is
+    written out, see _SSIM)."""
     if mask is not None:
-        m = mask[..., None].to(pred.dtype)
+        m = mask[..., None].to(pred.dtype) if pred.ndim == 3 else mask[:, None].to(pred.dtype)
         pred, gt = pred * m, gt * m
     if pred.ndim == 3:
         pred = pred.permute(2, 0, 1)[None]
         gt = gt.permute(2, 0, 1)[None]
     w = _window_1d(window, sigma, pred.shape[1], pred.dtype, pred.device)
-    weight = None
-    if mask is not None:  # per-pixel weights of the channel-mean map: 1 / valid pixels
-        mk = mask.to(pred.dtype)
-        weight = mk / mk.sum().clamp_min(1)
-    return _SSIM.apply(pred, gt.detach(), w, weight)
+    wt = None
+    if weight is not None or mask is not None:  # per-pixel weights of the channel-mean map, summing to 1
+        wt = torch.ones((), dtype=pred.dtype, device=pred.device) if weight is None else weight.to(pred.dtype)
+        if mask is not None:
+            wt = wt * mask.to(pred.dtype)
+        wt = wt / wt.sum().clamp_min(1e-12)
+    return _SSIM.apply(pred, gt.detach(), w, wt)
 
 
 class _SSIM(torch.autograd.Function):
-    """SSIM's map summed with weights (`weight` [H,W] over the channel mean, or the plain mean),
-    with its gradient in closed form: the map S = A1·A2 / (B1·B2) depends on `pred` through the
-    blurred μ1, E[x²], E[xy] only, so the gradient is three blurred maps (the blur is its own
-    adjoint: a symmetric window with zero padding), about half the work of autograd's
+    """SSIM's map summed with weights (`weight` [H,W] or [B,H,W] over the channel mean, or the
+    plain mean), with its gradient in closed form: the map S = A1·A2 / (B1·B2) depends on `pred`
+    through the blurred μ1, E[x²], E[xy] only, so the gradient is three blurred maps (the blur is
+    its own adjoint: a symmetric window with zero padding), about half the work of autograd's
     convolution backward and its elementwise chain."""
 
     C1, C2 = 0.01**2, 0.03**2
@@ -78,12 +85,7 @@ class _SSIM(torch.autograd.Function):
         # operations: each image-sized operation is a pass over memory
         maps = _blur(torch.cat([pred, gt, pred * pred, gt * gt, pred * gt], 1), w.repeat(5, 1, 1, 1))
         mu1, mu2, e11, e22, e12 = maps.split(c, dim=1)
-        a1 = torch.mul(mu1, mu2).mul_(2).add_(_SSIM.C1)  # 2 μ1μ2 + C1
-        a2 = torch.addcmul(e12, mu1, mu2, value=-1).mul_(2).add_(_SSIM.C2)  # 2 σ12 + C2
-        b1 = torch.addcmul(torch.mul(mu1, mu1), mu2, mu2).add_(_SSIM.C1)  # μ1² + μ2² + C1
-        b2 = torch.add(e11, e22).sub_(b1).add_(_SSIM.C1 + _SSIM.C2)  # σ1² + σ2² + C2
-        d = b1 * b2
-        smap = torch.mul(a1, a2).div_(d)
+        a1, a2, b1, b2, d, smap = _ssim_terms(mu1, mu2, e11, e22, e12)
         out = smap.mean() if weight is None else (smap.mean(dim=1) * weight).sum()
         ctx.save_for_backward(pred, gt, w, weight, mu1, mu2, a1, a2, b1, b2, d, smap)
         ctx.has_weight = weight is not None
@@ -93,8 +95,12 @@ class _SSIM(torch.autograd.Function):
     def backward(ctx, grad):
         pred, gt, w, weight, mu1, mu2, a1, a2, b1, b2, d, smap = ctx.saved_tensors
         c = pred.shape[1]
-        # d(out)/d(map) per pixel
-        k = grad * (weight / c if ctx.has_weight else 1.0 / smap.numel())
+        # d(out)/d(map) per pixel ([H,W] or [B,1,H,W] against the [B,C,H,W] maps)
+        if ctx.has_weight:
+            k = grad * weight / c
+            k = k[:, None] if k.ndim == 3 else k
+        else:
+            k = grad / smap.numel()
         # ∂S/∂μ1, ∂S/∂E[x²], ∂S/∂E[xy] (μ2, E[y²] are constants), scaled by k, written
         # straight into the buffer the blur reads
         maps = torch.empty((pred.shape[0], 3 * c) + tuple(pred.shape[2:]), dtype=pred.dtype, device=pred.device)
@@ -109,6 +115,32 @@ class _SSIM(torch.autograd.Function):
         bl = _blur(maps, w.repeat(3, 1, 1, 1))
         g_mu1, g_e11, g_e12 = bl.split(c, dim=1)
         return g_mu1.addcmul_(pred, g_e11, value=2).addcmul_(gt, g_e12), None, None, None
+
+
+def _ssim_terms(mu1, mu2, e11, e22, e12):
+    """(A1, A2, B1, B2, D = B1·B2, S = A1·A2 / D) of SSIM from the blurred moments."""
+    c1, c2 = _SSIM.C1, _SSIM.C2
+    a1 = torch.mul(mu1, mu2).mul_(2).add_(c1)  # 2 μ1μ2 + C1
+    a2 = torch.addcmul(e12, mu1, mu2, value=-1).mul_(2).add_(c2)  # 2 σ12 + C2
+    b1 = torch.addcmul(torch.mul(mu1, mu1), mu2, mu2).add_(c1)  # μ1² + μ2² + C1
+    b2 = torch.add(e11, e22).sub_(b1).add_(c1 + c2)  # σ1² + σ2² + C2
+    d = b1 * b2
+    return a1, a2, b1, b2, d, torch.mul(a1, a2).div_(d)
+
+
+def ssim_map(pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5,
+             mask: torch.Tensor | None = None) -> torch.Tensor:
+    """The per-pixel SSIM of two [H,W,3] images (channel mean) as [H,W] (masked pixels zeroed in
+    both images first, as in :func:`ssim`); not differentiable (a diagnostic: losses use `ssim`'s
+    `weight`)."""
+    with torch.no_grad():
+        if mask is not None:
+            m = mask[..., None].to(pred.dtype)
+            pred, gt = pred * m, gt * m
+        p, g = pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None]
+        w = _window_1d(window, sigma, 3, pred.dtype, pred.device)
+        maps = _blur(torch.cat([p, g, p * p, g * g, p * g], 1), w.repeat(5, 1, 1, 1))
+        return _ssim_terms(*maps.split(3, dim=1))[-1].mean(dim=1)[0]
 
 
 def psnr(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> float:
@@ -149,8 +181,26 @@ def layout_loss(means: torch.Tensor, u0: torch.Tensor, normals: torch.Tensor, ma
 
 
 def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_l1: float = 0.8, lambda_dssim: float = 0.2,
-                     mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(λ1·L1 + λ2·(1−SSIM), L1, SSIM) of [H,W,3] images, over `mask`'s valid pixels if given."""
-    l1 = l1_loss(pred, gt, mask)
-    s = ssim(pred, gt, mask=mask) if lambda_dssim > 0 else pred.new_tensor(1.0)
+                     mask: torch.Tensor | None = None, weight: torch.Tensor | None = None
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(λ1·L1 + λ2·(1−SSIM), L1, SSIM) of [H,W,3] images, over `mask`'s valid pixels if given.
+    `weight` ([H,W], >= 0) weighs the per-pixel L1 and SSIM maps (e.g. each pixel's solid angle,
+    `solid_angle_weight`); the means are then weighted means over the valid pixels."""
+    if weight is None:
+        l1 = l1_loss(pred, gt, mask)
+        s = ssim(pred, gt, mask=mask) if lambda_dssim > 0 else pred.new_tensor(1.0)
+    else:
+        w = weight.to(pred.dtype) if mask is None else weight.to(pred.dtype) * mask.to(pred.dtype)
+        l1 = ((pred - gt).abs().mean(-1) * w).sum() / w.sum().clamp_min(1e-12)
+        s = ssim(pred, gt, mask=mask, weight=weight) if lambda_dssim > 0 else pred.new_tensor(1.0)
     return lambda_l1 * l1 + lambda_dssim * (1.0 - s), l1, s
+
+
+def solid_angle_weight(height: int, width: int, dtype=torch.float32, device="cpu") -> torch.Tensor:
+    """[H,W] cos(latitude) of each equirectangular pixel centre, scaled to mean 1: proportional to
+    the pixel's solid angle, so a weighted mean over the panorama weighs every steradian alike
+    (an unweighted one counts the rows near the poles 1/cos(latitude) times more per steradian)."""
+    lat = (0.5 - (torch.arange(height, dtype=torch.float64) + 0.5) / height) * math.pi
+    w = torch.cos(lat).clamp_min(0.0)
+    w = (w / w.mean())[:, None].expand(height, width)
+    return w.to(dtype=dtype, device=device).contiguous()

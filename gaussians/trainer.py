@@ -32,8 +32,9 @@ import numpy as np
 import torch
 
 from gaussians.appearance import Appearance
+from gaussians.crop_loss import CropResampler, crop_photometric_loss
 from gaussians.densify import DensifyStats, densify_and_prune, gradient_scale, reset_opacity
-from gaussians.losses import layout_loss, photometric_loss, psnr, psnr_tensor
+from gaussians.losses import layout_loss, photometric_loss, psnr, psnr_tensor, solid_angle_weight
 from gaussians.model import PARAM_NAMES, Gaussians, render
 from gaussians.optim import Adam, expon_lr
 
@@ -51,6 +52,17 @@ class TrainConfig:
     lambda_dssim: float = 0.2
     lambda_layout: float = 0.1
     layout_reg: bool = True
+    #: weigh each panorama pixel's L1 and SSIM by its solid angle (cos latitude), so the loss counts
+    #: every steradian alike (perspective views are unweighted)
+    solid_angle_weighting: bool = False
+    #: λ · mean Gaussian scale / extent (the official 360-GS code's mean-scale penalty on floaters)
+    lambda_scale: float = 0.0
+    #: largest ratio of a Gaussian's longest axis to its second longest, enforced after every step
+    #: (None = free): keeps needles from forming (a flat disc, ratio ~1, is unaffected)
+    max_anisotropy: float | None = None
+    #: measure a panorama's L1 and D-SSIM on its eight 120° perspective crops (resampled from the
+    #: render, gaussians/crop_loss.py) instead of on the equirectangular image
+    crop_loss: bool = False
     # learning rates (3DGS); the position rates are multiplied by the scene extent
     lr_position_init: float = 1.6e-4
     lr_position_final: float = 1.6e-6
@@ -73,9 +85,15 @@ class TrainConfig:
     opacity_reset_every: int = 3000
     max_world_scale: float | None = 0.1  # × extent; prunes after the first opacity reset, as 3DGS
     max_screen_radius: float | None = None  # radians; None = off
+    #: iteration from which max_world_scale / max_screen_radius prune; None = after the first opacity reset
+    size_prune_from: int | None = None
     max_gaussians: int | None = 200_000
     # misc
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: train against a random background colour each iteration (drawn from the trainer's generator):
+    #: a pixel left partly transparent then cannot match its ground truth, so surfaces become opaque
+    #: (every ray of an indoor panorama ends on one); renders for evaluation use `background`
+    random_background: bool = False
     seed: int = 0
     backend: str | None = None
     #: torch device of the model, images, optimiser and losses; not in the fingerprint, so a
@@ -199,6 +217,9 @@ class Trainer:
         #: timed on the CPU (free there), None = not timed (a CUDA step would wait for the
         #: device at every part; set it to {} to time one anyway).
         self.part_seconds: dict[str, float] | None = {} if self.device.type == "cpu" else None
+        self._weights: dict[tuple[int, int], torch.Tensor] = {}
+        self._resamplers: dict = {}
+        self._crops: dict = {}
 
     def _new_appearance(self) -> Appearance | None:
         if not self.cfg.appearance:
@@ -209,6 +230,34 @@ class Trainer:
     def _as_trained(self, view: TrainView, image: torch.Tensor) -> torch.Tensor:
         """A render as the loss sees it: through the view's appearance transform, when on."""
         return image if self.appearance is None else self.appearance.apply(view.name, image)
+
+    def _crop_targets(self, view: TrainView):
+        """(resampler, ground-truth crops, crop masks) of a panorama view when crop_loss is on, else None."""
+        if not self.cfg.crop_loss or getattr(view.camera, "kind", None) != "equirect":
+            return None
+        hit = self._crops.get(view.name)
+        if hit is None:
+            key = (int(view.camera.height), int(view.camera.width))
+            rs = self._resamplers.get(key)
+            if rs is None:
+                rs = self._resamplers[key] = CropResampler(*key, dtype=view.image.dtype, device=self.device)
+            with torch.no_grad():
+                gt = rs(view.image)
+                m = None if view.mask is None else rs(view.mask[..., None].to(view.image.dtype))[:, 0] > 0.999
+            hit = self._crops[view.name] = (rs, gt, m)
+        return hit
+
+    def _pixel_weight(self, view: TrainView) -> torch.Tensor | None:
+        """The per-pixel loss weight of `view`: its pixels' solid angle for a panorama when
+        solid_angle_weighting is on, else None (a plain mean)."""
+        cam = view.camera
+        if not self.cfg.solid_angle_weighting or getattr(cam, "kind", None) != "equirect":
+            return None
+        key = (int(cam.height), int(cam.width))
+        w = self._weights.get(key)
+        if w is None:
+            w = self._weights[key] = solid_angle_weight(*key, dtype=view.image.dtype, device=self.device)
+        return w
 
     # -- one iteration -------------------------------------------------------
     def _next_view(self) -> TrainView:
@@ -228,12 +277,22 @@ class Trainer:
         view = self._next_view()
         g = self.g
         lap = _Laps(self.part_seconds, self.device)
-        out = render(g, view.viewmat, view.camera, backend=cfg.backend, background=self._bg,
+        bg = self._bg
+        if cfg.random_background:
+            bg = torch.rand(3, generator=self.gen, dtype=self._bg.dtype).to(self.device)
+        out = render(g, view.viewmat, view.camera, backend=cfg.backend, background=bg,
                      sh_degree=self.active_sh)
         lap("render")
         pred = self._as_trained(view, out.image)
-        photo, l1, s = photometric_loss(pred, view.image, cfg.lambda_l1, cfg.lambda_dssim, mask=view.mask)
+        crops = self._crop_targets(view)
+        if crops is not None:
+            photo, l1, s = crop_photometric_loss(pred, crops[1], crops[0], cfg.lambda_l1, cfg.lambda_dssim, crops[2])
+        else:
+            photo, l1, s = photometric_loss(pred, view.image, cfg.lambda_l1, cfg.lambda_dssim, mask=view.mask,
+                                            weight=self._pixel_weight(view))
         loss = photo
+        if cfg.lambda_scale > 0:
+            loss = loss + cfg.lambda_scale * torch.exp(g.log_scales).mean() / cfg.extent
         if self.appearance is not None and cfg.lambda_appearance > 0:
             loss = loss + cfg.lambda_appearance * self.appearance.regulariser()
         lay = None
@@ -269,13 +328,16 @@ class Trainer:
             # quaternions: keep them away from zero (the renderer copes, Adam's steps would not)
             qn = torch.linalg.vector_norm(g.quats, dim=-1, keepdim=True)
             g.quats.copy_(torch.where(qn > 1e-8, g.quats, g.quats.new_tensor([1.0, 0, 0, 0])))
+            if cfg.max_anisotropy is not None:
+                clamp_anisotropy_(g.log_scales, cfg.max_anisotropy)
             lap("optimiser")
 
             if it < cfg.densify_until:
                 self.stats.add(out.means2d.grad if out.means2d.requires_grad else None, out.visible, out.radii,
                                view.camera.pixel_scale[0], gradient_scale(view.camera))
                 if it >= cfg.densify_from and it % cfg.densify_every == 0:
-                    after_reset = cfg.opacity_reset_every > 0 and it > cfg.opacity_reset_every
+                    after_reset = (it >= cfg.size_prune_from if cfg.size_prune_from is not None
+                                   else cfg.opacity_reset_every > 0 and it > cfg.opacity_reset_every)
                     res = densify_and_prune(
                         g, self.opt, self.stats,
                         grad_threshold=cfg.densify_grad_threshold, percent_dense=cfg.percent_dense,
@@ -541,6 +603,17 @@ class Trainer:
             with open(self.log_path, "w") as f:
                 for rec in self.records:
                     f.write(json.dumps(rec) + "\n")
+
+
+def clamp_anisotropy_(log_scales: torch.Tensor, max_ratio: float) -> None:
+    """In place: shorten every Gaussian's longest axis to at most `max_ratio` × its second longest
+    (log scales [N,3]); the two shorter axes are untouched."""
+    top2 = torch.topk(log_scales, 2, dim=1)
+    limit = top2.values[:, 1] + math.log(max_ratio)
+    over = top2.values[:, 0] > limit
+    if bool(over.any()):
+        rows = torch.nonzero(over, as_tuple=False).squeeze(1)
+        log_scales[rows, top2.indices[rows, 0]] = limit[rows]
 
 
 def _num(x):

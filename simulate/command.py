@@ -75,6 +75,10 @@ def simulate_command(
     tripod_height: float | None = typer.Option(
         None, "--tripod-height", help="Every camera at this height (m), as one tripod takes a capture."
     ),
+    test_placement: str = typer.Option(
+        "near", "--test-placement", help="Test cameras 'near' the train cameras (0.35-1 m, interpolation) or "
+        "'away' from them (>= 1 m, anywhere in the free space: a walk-through of a sparse capture).",
+    ),
     profile: bool = typer.Option(False, "--profile", help="Print the time each effect / phase took."),
 ) -> SimulationResult:
     """Write a synthetic indoor scene folder with exact ground truth (depth, layout, floor plan)."""
@@ -95,6 +99,7 @@ def simulate_command(
         with_depth=with_depth,
         walk=walk,
         tripod_height=tripod_height,
+        test_placement=test_placement,
     )
     console.print(
         f"wrote {escape(str(result.manifest_path))} ({len(result.views)} views, {height}x{2 * height}, "

@@ -217,13 +217,16 @@ def generate_scene(
     with_depth: bool = False,
     walk: bool = False,
     tripod_height: float | None = None,
+    test_placement: str = "near",
 ) -> SimulationResult:
     """Simulate a scene and write its folder atomically (a sibling temp folder, renamed on success).
 
     `views` train and `test_views` test panoramas of `height` x 2`height` pixels. `effects`:
     'all', 'none', a comma-separated list or a set of names from EFFECTS ('all' for the demo
     preset means its noise-free set). `walk`: train cameras along a walk through the rooms (a
-    chain); `tripod_height`: every camera at that height (m). Raises ValueError on bad arguments.
+    chain); `tripod_height`: every camera at that height (m); `test_placement`: "near" the
+    train cameras (default) or "away" from them (simulate.geometry.TEST_PLACEMENTS). Raises ValueError
+    on bad arguments.
     """
     t_start = time.perf_counter()
     _check_args(preset, views, test_views, height, seed, aa_samples)
@@ -242,7 +245,7 @@ def generate_scene(
     if tripod_height is not None and not 0.3 <= tripod_height <= 0.9 * world.ceiling_height:
         raise ValueError(f"tripod height must be 0.3 m to 90 % of the ceiling height, got {tripod_height}")
     cams = place_cameras(world, int(views), int(test_views), rngs["cameras"], walk=walk,
-                         tripod_height=tripod_height)
+                         tripod_height=tripod_height, test_placement=test_placement)
     timings["scene"] = time.perf_counter() - t0
     boxes: list[Box] = []
     if "furniture" in fx:

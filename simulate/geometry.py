@@ -383,11 +383,37 @@ def _walk(world: World, n: int, rng: np.random.Generator) -> np.ndarray:
     return out
 
 
+#: Test placements: "near" each train camera (0.35-1 m, inside their hull: interpolation), or
+#: "away" from all of them (>= AWAY_MIN_DISTANCE m, anywhere in the free space: novel views as a
+#: walk-through of a sparse capture sees them).
+TEST_PLACEMENTS = ("near", "away")
+AWAY_MIN_DISTANCE = 1.0
+
+
+def _away_from(rng, rects, train_xz: np.ndarray, n: int, margin: float) -> np.ndarray:
+    """`n` points of the free space (rooms' `rects`), each >= AWAY_MIN_DISTANCE m from every train camera
+    (relaxed when the space is too small) and spread out (farthest-point order among the candidates)."""
+    cands = _sample_in_rects(rng, rects, 2000, margin)
+    dtrain = np.linalg.norm(cands[:, None, :] - train_xz[None], axis=2).min(axis=1)
+    for lim in (AWAY_MIN_DISTANCE, 0.6, 0.3, 0.0):
+        pool = cands[dtrain >= lim]
+        if len(pool) >= n:
+            break
+    if n == 0:
+        return np.zeros((0, 2))
+    return pool[_farthest_points(pool, n, rng)]
+
+
 def place_cameras(world: World, n_train: int, n_test: int, rng: np.random.Generator,
-                  walk: bool = False, tripod_height: float | None = None) -> list[Camera]:
+                  walk: bool = False, tripod_height: float | None = None,
+                  test_placement: str = "near") -> list[Camera]:
     """Train cameras spread over the free space (or, with `walk`, along a walk through the rooms,
-    for presets with doorways); test cameras near them, inside their hull when possible. With
-    `tripod_height` every camera stands that high (a capture from one tripod), else 1.2-1.7 m."""
+    for presets with doorways); test cameras near them, inside their hull when possible
+    (`test_placement` "near"), or anywhere at least AWAY_MIN_DISTANCE m from every train camera
+    ("away"). With `tripod_height` every camera stands that high (a capture from one tripod), else
+    1.2-1.7 m."""
+    if test_placement not in TEST_PLACEMENTS:
+        raise ValueError(f"unknown test placement {test_placement!r}; choose one of {', '.join(TEST_PLACEMENTS)}")
     regions = world.camera_regions
     margin = WALL_MARGIN
     if walk and not world.doorways:
@@ -414,7 +440,9 @@ def place_cameras(world: World, n_train: int, n_test: int, rng: np.random.Genera
     # inside the train cameras' convex hull when there is one.
     test_xz = np.zeros((n_test, 2))
     room_of_train = [i % len(regions) for i in range(n_train)]
-    for t in range(n_test):
+    if test_placement == "away":
+        test_xz = _away_from(rng, [r for rs in regions for r in rs], train_xz, n_test, margin)
+    for t in range(n_test if test_placement == "near" else 0):
         k = t % n_train
         ri = room_of_train[k]
         cands = _sample_in_rects(rng, regions[ri], 600, margin)

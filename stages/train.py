@@ -53,6 +53,16 @@ PRESETS: dict[str, dict] = {
 }
 
 
+#: Defaults that depend on the projection, for the parameters left unset (None). The 360 path's
+#: controls for sparse captures, measured in docs/training.md ("Sparse captures: 360° against crops");
+#: the perspective baselines keep 3DGS's behaviour.
+PROJECTION_DEFAULTS: dict[str, dict] = {
+    "360": dict(random_background=False, lr_scale=0.5),
+    "crops": dict(random_background=False, lr_scale=1.0),
+    "cubemap": dict(random_background=False, lr_scale=1.0),
+}
+
+
 class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -80,9 +90,23 @@ class Params(BaseModel):
     lambda_l1: float = Field(default=0.8, ge=0, description="λ1: weight of the L1 photometric loss.")
     lambda_dssim: float = Field(
         default=0.2, ge=0, description="λ2: weight of the D-SSIM loss (1 - SSIM) / 2.")
+    solid_angle_weighting: bool = Field(
+        default=False, description="360: weigh each panorama pixel's L1 and SSIM by its solid angle (cos latitude).")
+    lambda_scale: float = Field(
+        default=0.0, ge=0, description="Weight of the mean-scale penalty (mean Gaussian scale / extent; official 360-GS).")
+    max_anisotropy: float | None = Field(
+        default=None, ge=1, description="Longest / second-longest axis of a Gaussian at most this (None = free): "
+                                       "no needles.")
+    crop_loss: bool = Field(
+        default=False, description="360: measure L1 and D-SSIM on the eight 120° perspective crops resampled "
+                                   "from the rendered panorama instead of on the panorama itself.")
     lambda_layout: float | None = Field(
         default=None, ge=0,
         description="λ3, weight of L_layout; default 0.1 for <= 8 training views, 0.01 above (paper).")
+    lr_scale: float | None = Field(
+        default=None, gt=0, description="Multiplies every learning rate below. None = the projection's default: "
+        "0.5 for 360 (a panorama iteration updates every Gaussian, a crop iteration about a quarter of them), "
+        "1 for the crops.")
     lr_position_init: float = Field(
         default=1.6e-4, gt=0,
         description="Adam learning rate of the Gaussian centres at iteration 1, × extent (m).")
@@ -124,6 +148,9 @@ class Params(BaseModel):
         default=0.1, gt=0, description="Prune scale > this × extent after the first opacity reset (None = off).")
     max_screen_radius: float | None = Field(
         default=None, gt=0, description="Prune a screen radius > this (radians) after the first reset.")
+    size_prune_from: int | None = Field(
+        default=None, ge=0, description="Iteration from which max_world_scale / max_screen_radius prune "
+                                        "(None = after the first opacity reset).")
     max_gaussians: int | None = Field(default=None, ge=1, description="Densification cap.")
     random_points: int | None = Field(default=None, ge=1, description="Gaussians of the random init.")
     max_init_points: int | None = Field(
@@ -132,6 +159,10 @@ class Params(BaseModel):
     layout_flatten: float = Field(default=0.1, gt=0, le=1, description="Thickness / width of layout Gaussians.")
     background: tuple[float, float, float] = Field(
         default=(0.0, 0.0, 0.0), description="RGB in [0, 1] behind the Gaussians while training.")
+    random_background: bool | None = Field(
+        default=None, description="Train against a random background colour each iteration (opaque surfaces); "
+                                  "evaluation renders use `background`. None = the projection's default "
+                                  "(off for every projection).")
     seed: int = Field(
         default=0, ge=0, le=2**32 - 1,
         description="Random seed of the view order, random init and densification.")
@@ -148,8 +179,13 @@ class Params(BaseModel):
     lr_appearance: float = Field(default=1e-3, gt=0, description="Adam learning rate of the transforms.")
 
     def resolved(self, key: str):
+        """The value of `key`: as set, else the preset's, else the projection's default (PROJECTION_DEFAULTS)."""
         v = getattr(self, key)
-        return PRESETS[self.preset][key] if v is None else v
+        if v is not None:
+            return v
+        if key in PRESETS[self.preset]:
+            return PRESETS[self.preset][key]
+        return PROJECTION_DEFAULTS[self.projection].get(key)
 
     @model_validator(mode="after")
     def _crops_form_rings(self):
@@ -274,21 +310,25 @@ def build_views(images: dict[str, np.ndarray], viewmats: dict[str, np.ndarray], 
 def make_config(p: Params, num_train_views: int, extent: float, device: str = "cpu") -> TrainConfig:
     iterations = int(p.resolved("iterations"))
     reset = p.resolved("opacity_reset_every")
+    lr = float(p.resolved("lr_scale"))
     return TrainConfig(
         iterations=iterations,
         lambda_l1=p.lambda_l1, lambda_dssim=p.lambda_dssim,
         lambda_layout=p.lambda_layout if p.lambda_layout is not None else default_lambda_layout(num_train_views),
         layout_reg=p.layout_reg,
-        lr_position_init=p.lr_position_init, lr_position_final=p.lr_position_final,
-        lr_sh_dc=p.lr_sh_dc, lr_sh_rest=p.lr_sh_rest, lr_opacity=p.lr_opacity, lr_scaling=p.lr_scaling,
-        lr_rotation=p.lr_rotation, extent=float(extent),
+        lr_position_init=lr * p.lr_position_init, lr_position_final=lr * p.lr_position_final,
+        lr_sh_dc=lr * p.lr_sh_dc, lr_sh_rest=lr * p.lr_sh_rest, lr_opacity=lr * p.lr_opacity,
+        lr_scaling=lr * p.lr_scaling, lr_rotation=lr * p.lr_rotation, extent=float(extent),
         sh_degree=p.sh_degree, sh_degree_every=p.sh_degree_every,
         densify_from=int(p.resolved("densify_from")), densify_until=int(p.resolved("densify_until")),
         densify_every=p.densify_every, densify_grad_threshold=p.densify_grad_threshold,
         percent_dense=p.percent_dense, min_opacity=p.min_opacity, opacity_reset_every=int(reset),
         max_world_scale=p.max_world_scale, max_screen_radius=p.max_screen_radius,
+        size_prune_from=p.size_prune_from, solid_angle_weighting=p.solid_angle_weighting,
+        lambda_scale=p.lambda_scale, max_anisotropy=p.max_anisotropy, crop_loss=p.crop_loss,
         max_gaussians=p.resolved("max_gaussians"),
-        background=tuple(float(x) for x in p.background), seed=p.seed, backend=p.backend, device=device,
+        background=tuple(float(x) for x in p.background), random_background=bool(p.resolved("random_background")),
+        seed=p.seed, backend=p.backend, device=device,
         log_every=p.log_every, checkpoint_every=p.checkpoint_every,
         appearance=p.appearance, lambda_appearance=p.lambda_appearance, lr_appearance=p.lr_appearance,
     )

@@ -103,6 +103,31 @@ def test_ablation_notes_table_and_chart(tmp_path):
     assert cv2.imread(str(tmp_path / "a.png")) is not None
 
 
+def test_equal_budget_plan_and_projection_table():
+    base = E.AblationRow("layout-init", "+ layout init", {"projection": "crops"})
+    p360 = E.AblationRow("layout-reg", "+ layout reg", {"projection": "360"})
+    base.runs = [{"psnr": p, "ssim": 0.70, "iterations": 100, "train_seconds": 10.0, "pixels_per_image": 64 * 64}
+                 for p in (20.0, 20.2)]
+    p360.runs = [{"psnr": p, "ssim": 0.75, "iterations": 100, "train_seconds": 30.0, "pixels_per_image": 64 * 128}
+                 for p in (21.0, 21.2)]
+    rows = [base, p360]
+    cheap, iters, ratio = E.equal_budget_plan(rows, "time")
+    assert cheap is base and iters == 300 and ratio == pytest.approx(3.0)
+    cheap, iters, _ = E.equal_budget_plan(rows, "pixels")
+    assert cheap is base and iters == 200
+    assert E.equal_budget_plan(rows, "none") is None
+    assert E.equal_budget_plan([base], "time") is None  # nothing to compare
+    extra = E.AblationRow("layout-init-equal-time", "+ layout init (equal time)", base.settings)
+    extra.runs = [dict(r, psnr=r["psnr"] + 0.5, iterations=300, train_seconds=30.0) for r in base.runs]
+    table, notes = E.projection_table(rows, extra, "time")
+    lines = table.splitlines()
+    assert len(lines) == 4 and lines[2].startswith("| equal iterations | 20.10 / 0.700 | 21.10 / 0.750 | 100 / 100")
+    assert "| equal time | 20.60 / 0.700 | 21.10 / 0.750 | 300 / 100 | 30 / 30 | +0.50" in lines[3]
+    # +1.00 dB against a spread of √2·0.14 = 0.20: a clear win; +0.05 SSIM with no spread
+    assert notes[0].startswith("✓ at equal iterations, 360 beats crops: +1.00 dB")
+    assert notes[1].startswith("✓ at equal time, 360 beats crops: +0.50 dB")
+
+
 def test_sweep_table_and_plot(tmp_path):
     pts = [E.SweepPoint(300, 64, None, psnr=15.0, train_seconds=10, fps=20, num_gaussians=1000),
            E.SweepPoint(1000, 128, 5000, psnr=18.0, train_seconds=60, fps=5, num_gaussians=5000)]
@@ -148,7 +173,7 @@ def tiny_layout_scene(tmp_path_factory):
 
 def test_ablation_end_to_end(tiny_layout_scene, tmp_path):
     base = tmp_path / "run"
-    res = E.run_ablation(tiny_layout_scene, base, TINY, seeds=1, iterations=2, log=lambda *a: None)
+    res = E.run_ablation(tiny_layout_scene, base, TINY, seeds=1, iterations=2, log=lambda *a: None, equal="pixels")
     doc = json.loads(res["json"].read_text())
     assert [v["label"] for v in doc["variants"]] == ["3D-GS*", "+ layout init", "+ 360 splatting", "+ layout reg"]
     runs = [v["runs"][0] for v in doc["variants"]]
@@ -159,7 +184,11 @@ def test_ablation_end_to_end(tiny_layout_scene, tmp_path):
     assert [r["train_images"] for r in runs] == [16, 16, 2, 2]
     assert [r["train"]["layout_reg"] for r in runs] == [False, False, False, True]
     assert all(r["train"]["iterations"] == 2 and r["psnr"] > 5 for r in runs)
-    assert len(res["notes"]) == 3 and not doc["warnings"]
+    # equal pixels: a 16-px crop has half a 16x32 panorama's pixels, so the crops get 4 iterations
+    eq = doc["equal_budget"]["row"]
+    assert eq["key"] == "layout-init-equal-pixels" and eq["runs"][0]["train"]["iterations"] == 4
+    assert eq["runs"][0]["train"]["projection"] == "crops" and "| equal pixels |" in doc["equal_budget"]["table"]
+    assert len(res["notes"]) == 5 and not doc["warnings"]
     # upstream stages are shared: every variant holds the base run's artifacts, same keys
     for stage in ("layout", "union", "sampling", "align"):
         key = json.loads((base / stage / "artifact.json").read_text())["meta"]["key"]

@@ -85,3 +85,58 @@ def test_ssim_and_psnr_references():
     assert psnr(c, a) == pytest.approx(10 * math.log10(1 / mse), rel=1e-6)
     total, l1, s = photometric_loss(b, a)
     assert total.item() == pytest.approx(0.8 * (b - a).abs().mean().item() + 0.2 * (1 - s.item()), rel=1e-6)
+
+
+def test_solid_angle_weight_is_cos_latitude_with_mean_one():
+    from gaussians.losses import solid_angle_weight
+
+    w = solid_angle_weight(8, 16, dtype=torch.float64)
+    assert w.shape == (8, 16) and w.mean().item() == pytest.approx(1.0)
+    lat = (0.5 - (np.arange(8) + 0.5) / 8) * math.pi
+    ratio = w[:, 0].numpy() / np.cos(lat)
+    assert np.allclose(ratio, ratio[0])  # proportional to each row's solid angle
+    assert torch.all(w[:, 0] == w[:, 5])  # constant along a row
+
+
+def test_photometric_loss_weighted_means():
+    from gaussians.losses import ssim_map
+
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.rand(12, 20, 3, generator=g, dtype=torch.float64), torch.rand(12, 20, 3, generator=g,
+                                                                               dtype=torch.float64)
+    # uniform weights: exactly the plain means
+    plain = photometric_loss(a, b)
+    flat = photometric_loss(a, b, weight=torch.full((12, 20), 3.0, dtype=torch.float64))
+    for x, y in zip(plain, flat):
+        assert x.item() == pytest.approx(y.item(), rel=1e-12)
+    assert ssim_map(a, b).mean().item() == pytest.approx(ssim(a, b).item(), rel=1e-12)
+    # all weight on one row: that row's L1 and SSIM, masked pixels excluded
+    w = torch.zeros(12, 20, dtype=torch.float64)
+    w[3] = 1.0
+    mask = torch.ones(12, 20, dtype=torch.bool)
+    mask[3, :10] = False
+    _, l1, s = photometric_loss(a, b, weight=w, mask=mask)
+    assert l1.item() == pytest.approx((a - b)[3, 10:].abs().mean().item(), rel=1e-12)
+    assert s.item() == pytest.approx(ssim_map(a, b, mask=mask)[3, 10:].mean().item(), rel=1e-12)
+
+
+def test_weighted_and_batched_ssim_gradients_are_exact():
+    """SSIM's closed-form gradient with per-pixel weights ([H,W], and [B,H,W] with a batch mask, as
+    the crop loss calls it) against finite differences, and its value against the map."""
+    from gaussians.losses import ssim_map
+
+    g = torch.Generator().manual_seed(3)
+    gt = torch.rand(9, 11, 3, generator=g, dtype=torch.float64)
+    pred = torch.rand(9, 11, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    w = torch.rand(9, 11, generator=g, dtype=torch.float64)
+    assert ssim(pred, gt, weight=w).item() == pytest.approx(
+        (ssim_map(pred, gt) * w).sum().item() / w.sum().item(), rel=1e-12)
+    assert torch.autograd.gradcheck(lambda p: ssim(p, gt, weight=w), (pred,))
+    gb = torch.rand(2, 3, 8, 8, generator=g, dtype=torch.float64)
+    pb = torch.rand(2, 3, 8, 8, generator=g, dtype=torch.float64, requires_grad=True)
+    mb = torch.rand(2, 8, 8, generator=g) > 0.3
+    assert torch.autograd.gradcheck(lambda p: ssim(p, gb, mask=mb), (pb,))
+    # the masked batch mean is the mean of the valid pixels' map values over both images
+    want = sum(ssim_map(pb[i].detach().permute(1, 2, 0), gb[i].permute(1, 2, 0), mask=mb[i])[mb[i]].sum()
+               for i in range(2)) / mb.sum()
+    assert ssim(pb, gb, mask=mb).item() == pytest.approx(want.item(), rel=1e-12)

@@ -303,3 +303,28 @@ def test_command_profile(tmp_path):
     assert (out / "scene.json").is_file()
     r = CliRunner().invoke(app, [str(out), "--preset", "nope"])
     assert r.exit_code != 0 and isinstance(r.exception, ValueError)
+
+
+def test_test_cameras_away_from_the_training_ones():
+    """`test_placement="away"`: every test camera >= AWAY_MIN_DISTANCE from every train camera, spread
+    over both rooms; the default ("near") placement is unchanged by the option."""
+    from simulate.geometry import AWAY_MIN_DISTANCE, build_world, place_cameras
+
+    def cams(placement):
+        rng = np.random.default_rng(3)
+        world = build_world("two-rooms", np.random.default_rng(4))
+        return world, place_cameras(world, 4, 8, rng, test_placement=placement)
+
+    world, away = cams("away")
+    train = np.array([c.position[[0, 2]] for c in away if c.split == "train"])
+    test = np.array([c.position[[0, 2]] for c in away if c.split == "test"])
+    assert len(test) == 8
+    d = np.linalg.norm(test[:, None] - train[None], axis=2).min(axis=1)
+    assert d.min() >= AWAY_MIN_DISTANCE
+    rooms = {next(i for i, r in enumerate(world.rooms) if r.shape.buffer(1e-6).contains(Point(*p))) for p in test}
+    assert rooms == {0, 1}
+    _, near = cams("near")
+    near_test = np.array([c.position[[0, 2]] for c in near if c.split == "test"])
+    assert np.linalg.norm(near_test[:, None] - train[None], axis=2).min(axis=1).max() <= 1.0 + 1e-9
+    with pytest.raises(ValueError, match="test placement"):
+        cams("far")
