@@ -43,6 +43,14 @@ class Appearance:
         """Mean squared distance of the transforms from the identity."""
         return ((self.gain - 1.0) ** 2).mean() + (self.bias**2).mean()
 
+    def gauge(self) -> torch.Tensor:
+        """Squared distance of the *mean* transform (over the panoramas, per channel) from the
+        identity. The model's colours and the transforms share a free gauge (a common gain and
+        offset moves from one to the other without changing any training render); test views are
+        rendered without a transform, so they see that drift. Pinning the mean makes the model's
+        colours those of the training panoramas' mean exposure."""
+        return ((self.gain.mean(0) - 1.0) ** 2).sum() + (self.bias.mean(0) ** 2).sum()
+
     def step(self) -> None:
         for p in (self.gain, self.bias):
             if p.grad is not None:

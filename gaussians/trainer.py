@@ -63,6 +63,14 @@ class TrainConfig:
     #: measure a panorama's L1 and D-SSIM on its eight 120° perspective crops (resampled from the
     #: render, gaussians/crop_loss.py) instead of on the equirectangular image
     crop_loss: bool = False
+    #: weight of the novel-view coverage loss: mean(1 − alpha) of a panorama rendered from a random
+    #: position between the training cameras (`coverage_height` rows). Indoors every ray from
+    #: inside the room ends on a surface, so a hole there is an error no training view shows
+    #: (the sparse-capture study in docs/training.md)
+    lambda_coverage: float = 0.0
+    coverage_height: int = 32
+    #: horizontal jitter of those positions (× extent) around the segment between two cameras
+    coverage_jitter: float = 0.05
     # learning rates (3DGS); the position rates are multiplied by the scene extent
     lr_position_init: float = 1.6e-4
     lr_position_final: float = 1.6e-6
@@ -104,6 +112,8 @@ class TrainConfig:
     # per-panorama appearance (gaussians/appearance.py)
     appearance: bool = False
     lambda_appearance: float = 0.01
+    #: weight of the penalty on the mean transform's distance from the identity (Appearance.gauge)
+    lambda_appearance_gauge: float = 0.0
     lr_appearance: float = 1e-3
 
     def fingerprint(self) -> str:
@@ -220,6 +230,7 @@ class Trainer:
         self._weights: dict[tuple[int, int], torch.Tensor] = {}
         self._resamplers: dict = {}
         self._crops: dict = {}
+        self._centres: torch.Tensor | None = None
 
     def _new_appearance(self) -> Appearance | None:
         if not self.cfg.appearance:
@@ -246,6 +257,32 @@ class Trainer:
                 m = None if view.mask is None else rs(view.mask[..., None].to(view.image.dtype))[:, 0] > 0.999
             hit = self._crops[view.name] = (rs, gt, m)
         return hit
+
+    def _camera_centres(self) -> torch.Tensor:
+        """[P,3] distinct camera centres of the training views (a panorama's crops share one)."""
+        if self._centres is None:
+            c = torch.stack([-(v.viewmat[:3, :3].T @ v.viewmat[:3, 3]) for v in self.views])
+            self._centres = torch.unique(torch.round(c, decimals=6), dim=0)
+        return self._centres
+
+    def _coverage_loss(self) -> torch.Tensor:
+        """mean(1 − alpha) of a coverage_height × 2·coverage_height panorama from a random point of
+        the segment between two training cameras (horizontally jittered): pushes holes between
+        splats, which only a new viewpoint shows, to close."""
+        import splatting
+
+        cfg = self.cfg
+        c = self._camera_centres()
+        i, j = torch.randint(len(c), (2,), generator=self.gen).tolist()
+        u, jx, jz = torch.rand(3, generator=self.gen, dtype=torch.float64).tolist()
+        pos = c[i] + u * (c[j] - c[i])
+        pos = pos + pos.new_tensor([2 * jx - 1, 0.0, 2 * jz - 1]) * cfg.coverage_jitter * cfg.extent
+        viewmat = torch.eye(4, dtype=self.g.means.dtype, device=self.device)
+        viewmat[:3, 3] = -pos.to(viewmat.dtype)
+        h = int(cfg.coverage_height)
+        out = render(self.g, viewmat, splatting.EquirectCamera(h, 2 * h), backend=cfg.backend,
+                     background=self._bg, sh_degree=0)
+        return (1.0 - out.alpha).mean()
 
     def _pixel_weight(self, view: TrainView) -> torch.Tensor | None:
         """The per-pixel loss weight of `view`: its pixels' solid angle for a panorama when
@@ -295,6 +332,12 @@ class Trainer:
             loss = loss + cfg.lambda_scale * torch.exp(g.log_scales).mean() / cfg.extent
         if self.appearance is not None and cfg.lambda_appearance > 0:
             loss = loss + cfg.lambda_appearance * self.appearance.regulariser()
+        if self.appearance is not None and cfg.lambda_appearance_gauge > 0:
+            loss = loss + cfg.lambda_appearance_gauge * self.appearance.gauge()
+        cov = None
+        if cfg.lambda_coverage > 0:
+            cov = self._coverage_loss()
+            loss = loss + cfg.lambda_coverage * cov
         lay = None
         if self._has_layout is None:
             self._has_layout = bool(g.is_layout.any())
@@ -365,6 +408,7 @@ class Trainer:
         return {
             "iteration": it, "loss": lv, "l1": l1.detach(), "ssim": s.detach(),
             "layout": None if lay is None else lay.detach(), "psnr": p, "view": view.name,
+            "coverage": None if cov is None else cov.detach(),
         }
 
     # -- the loop --------------------------------------------------------------
@@ -409,6 +453,8 @@ class Trainer:
             "num_gaussians": len(self.g), "sh_degree": self.active_sh, "lr_means": self.opt.lrs["means"],
             "seconds": round(self.train_seconds, 3), "nonfinite_steps": int(self.nonfinite_steps),
         }
+        if info.get("coverage") is not None:
+            rec["coverage"] = _num(info["coverage"])
         self.records.append(rec)
         if self.log_path is not None:
             with open(self.log_path, "a") as f:

@@ -57,9 +57,9 @@ PRESETS: dict[str, dict] = {
 #: controls for sparse captures, measured in docs/training.md ("Sparse captures: 360° against crops");
 #: the perspective baselines keep 3DGS's behaviour.
 PROJECTION_DEFAULTS: dict[str, dict] = {
-    "360": dict(random_background=False, lr_scale=0.5),
-    "crops": dict(random_background=False, lr_scale=1.0),
-    "cubemap": dict(random_background=False, lr_scale=1.0),
+    "360": dict(random_background=False, lr_scale=0.5, lambda_coverage=0.0),
+    "crops": dict(random_background=False, lr_scale=1.0, lambda_coverage=0.0),
+    "cubemap": dict(random_background=False, lr_scale=1.0, lambda_coverage=0.0),
 }
 
 
@@ -100,6 +100,11 @@ class Params(BaseModel):
     crop_loss: bool = Field(
         default=False, description="360: measure L1 and D-SSIM on the eight 120° perspective crops resampled "
                                    "from the rendered panorama instead of on the panorama itself.")
+    lambda_coverage: float | None = Field(
+        default=None, ge=0, description="Weight of the novel-view coverage loss: mean(1 - alpha) of a small panorama "
+        "rendered from a random point between the training cameras (indoors every ray ends on a surface). "
+        "None = the projection's default.")
+    coverage_height: int = Field(default=32, ge=4, description="Rows of the coverage loss's panorama.")
     lambda_layout: float | None = Field(
         default=None, ge=0,
         description="λ3, weight of L_layout; default 0.1 for <= 8 training views, 0.01 above (paper).")
@@ -176,6 +181,9 @@ class Params(BaseModel):
     appearance: bool = Field(default=False, description="A learned colour gain and bias per training panorama "
                                                        "(exposure, white balance), applied while training only.")
     lambda_appearance: float = Field(default=0.01, ge=0, description="Weight pulling the transforms to identity.")
+    lambda_appearance_gauge: float = Field(
+        default=0.0, ge=0, description="Weight pinning the mean transform over the panoramas to the identity "
+        "(the model's colours then match the panoramas' mean exposure, which held-out views are rendered at).")
     lr_appearance: float = Field(default=1e-3, gt=0, description="Adam learning rate of the transforms.")
 
     def resolved(self, key: str):
@@ -326,11 +334,13 @@ def make_config(p: Params, num_train_views: int, extent: float, device: str = "c
         max_world_scale=p.max_world_scale, max_screen_radius=p.max_screen_radius,
         size_prune_from=p.size_prune_from, solid_angle_weighting=p.solid_angle_weighting,
         lambda_scale=p.lambda_scale, max_anisotropy=p.max_anisotropy, crop_loss=p.crop_loss,
+        lambda_coverage=float(p.resolved("lambda_coverage")), coverage_height=p.coverage_height,
         max_gaussians=p.resolved("max_gaussians"),
         background=tuple(float(x) for x in p.background), random_background=bool(p.resolved("random_background")),
         seed=p.seed, backend=p.backend, device=device,
         log_every=p.log_every, checkpoint_every=p.checkpoint_every,
-        appearance=p.appearance, lambda_appearance=p.lambda_appearance, lr_appearance=p.lr_appearance,
+        appearance=p.appearance, lambda_appearance=p.lambda_appearance,
+        lambda_appearance_gauge=p.lambda_appearance_gauge, lr_appearance=p.lr_appearance,
     )
 
 

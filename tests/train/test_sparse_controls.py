@@ -89,3 +89,58 @@ def test_crop_resampler_matches_the_baselines_crops_and_passes_gradients():
                                         mask_crops=torch.ones(gt.shape[0], h, h, dtype=torch.bool))
     loss2.backward()
     assert pred.grad.abs().sum() > 0
+
+
+def test_coverage_loss_closes_a_hole_no_training_view_shows():
+    """A half-transparent shell of Gaussians around two cameras, no photometric loss: the coverage
+    loss, rendered from points between the cameras, sees the 1 − alpha and raises the shell's
+    opacity; without it nothing moves. The positions are drawn between the distinct centres."""
+    import splatting
+    from gaussians.model import Gaussians
+    from gaussians.trainer import TrainView
+
+    gen = torch.Generator().manual_seed(0)
+    d = torch.randn(400, 3, generator=gen)
+    d = d / d.norm(dim=1, keepdim=True)
+    g = Gaussians.create(2.0 * d, sh_degree=0, log_scales=torch.full((400, 3), math.log(0.25)))
+    g.opacity_logits = torch.full((400,), -1.0)
+    cams = [torch.eye(4), torch.eye(4)]
+    cams[1][:3, 3] = torch.tensor([-0.6, 0.0, 0.0])  # world-to-camera: centre at x = +0.6
+    views = [TrainView(f"v{i}", torch.full((8, 16, 3), 0.3), vm, splatting.EquirectCamera(8, 16))
+             for i, vm in enumerate(cams)]
+    opacity, logs = {}, {}
+    for lam in (0.0, 1.0):
+        cfg = small_config(iterations=40, extent=2.0, densify_until=0, lambda_layout=0.0, lambda_dssim=0.0,
+                           lambda_l1=0.0, lambda_coverage=lam, coverage_height=8)
+        tr = Trainer(g, views, cfg)
+        centres = tr._camera_centres()
+        assert torch.allclose(centres.sort(dim=0).values[:, 0], torch.tensor([0.0, 0.6]), atol=1e-6)
+        tr.train()
+        opacity[lam] = float(torch.sigmoid(tr.g.opacity_logits.detach()).mean())
+        logs[lam] = [r.get("coverage") for r in tr.records]
+    assert opacity[0.0] == pytest.approx(torch.sigmoid(torch.tensor(-1.0)).item(), abs=1e-6)
+    assert opacity[1.0] > opacity[0.0] + 0.05, opacity
+    assert all(c is None for c in logs[0.0]) and logs[1.0][-1] < logs[1.0][0]
+
+
+def test_appearance_gauge_pins_the_mean_transform():
+    """Two panoramas of one grey, one 1.25× the other: transforms and colours can split the
+    difference any way (a free gauge); with the gauge penalty the mean gain ends near 1, so the
+    model's colour is the mean exposure, 0.5 × (1 + 1.25) / 2."""
+    import splatting
+    from gaussians.model import Gaussians
+    from gaussians.trainer import TrainView
+
+    g = Gaussians.create(torch.tensor([[0.0, 0.0, 1.0]]), sh_degree=0, log_scales=torch.full((1, 3), 2.0))
+    g.opacity_logits = torch.full((1,), 8.0)
+    views = [TrainView(f"v{i}", torch.full((8, 16, 3), 0.5 * k), torch.eye(4), splatting.EquirectCamera(8, 16))
+             for i, k in enumerate((1.0, 1.25))]
+    cfg = small_config(iterations=100, extent=1.0, densify_until=0, lambda_layout=0.0, lambda_dssim=0.0, lr_sh_dc=0.02,
+                       appearance=True, lr_appearance=0.02, lambda_appearance=0.0, lambda_appearance_gauge=10.0, log_every=50)
+    tr = Trainer(g, views, cfg)
+    tr.train()
+    assert float(tr.appearance.gauge().detach()) < 1e-3
+    assert float(tr.appearance.gain.detach().mean()) == pytest.approx(1.0, abs=0.02)
+    with torch.no_grad():
+        colour = tr.g.sh_dc[0, 0].mean().item() * 0.28209479177387814 + 0.5
+    assert colour == pytest.approx(0.5 * 1.125, abs=0.02)
