@@ -68,7 +68,7 @@ class TrainConfig:
     #: inside the room ends on a surface, so a hole there is an error no training view shows
     #: (the sparse-capture study in docs/training.md)
     lambda_coverage: float = 0.0
-    coverage_height: int = 32
+    coverage_height: int = 64
     #: horizontal jitter of those positions (× extent) around the segment between two cameras
     coverage_jitter: float = 0.05
     # learning rates (3DGS); the position rates are multiplied by the scene extent

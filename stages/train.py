@@ -57,9 +57,9 @@ PRESETS: dict[str, dict] = {
 #: controls for sparse captures, measured in docs/training.md ("Sparse captures: 360° against crops");
 #: the perspective baselines keep 3DGS's behaviour.
 PROJECTION_DEFAULTS: dict[str, dict] = {
-    "360": dict(random_background=False, lr_scale=0.5, lambda_coverage=0.0),
-    "crops": dict(random_background=False, lr_scale=1.0, lambda_coverage=0.0),
-    "cubemap": dict(random_background=False, lr_scale=1.0, lambda_coverage=0.0),
+    "360": dict(random_background=False, lr_scale=0.5),
+    "crops": dict(random_background=False, lr_scale=1.0),
+    "cubemap": dict(random_background=False, lr_scale=1.0),
 }
 
 
@@ -100,11 +100,13 @@ class Params(BaseModel):
     crop_loss: bool = Field(
         default=False, description="360: measure L1 and D-SSIM on the eight 120° perspective crops resampled "
                                    "from the rendered panorama instead of on the panorama itself.")
-    lambda_coverage: float | None = Field(
-        default=None, ge=0, description="Weight of the novel-view coverage loss: mean(1 - alpha) of a small panorama "
-        "rendered from a random point between the training cameras (indoors every ray ends on a surface). "
-        "None = the projection's default.")
-    coverage_height: int = Field(default=32, ge=4, description="Rows of the coverage loss's panorama.")
+    lambda_coverage: float = Field(
+        default=0.0, ge=0, description="Weight of the novel-view coverage loss: mean(1 - alpha) of a small panorama "
+        "rendered from a random point between the training cameras (indoors every ray ends on a surface); "
+        "sparse captures: 1 with lr_scale=0.125 (docs/training.md).")
+    coverage_height: int | None = Field(
+        default=None, ge=4, description="Rows of the coverage loss's panorama (None = half the training height: "
+        "a coarser render blurs the holes between thin splats shut, a full-size one costs a second render).")
     lambda_layout: float | None = Field(
         default=None, ge=0,
         description="λ3, weight of L_layout; default 0.1 for <= 8 training views, 0.01 above (paper).")
@@ -334,7 +336,8 @@ def make_config(p: Params, num_train_views: int, extent: float, device: str = "c
         max_world_scale=p.max_world_scale, max_screen_radius=p.max_screen_radius,
         size_prune_from=p.size_prune_from, solid_angle_weighting=p.solid_angle_weighting,
         lambda_scale=p.lambda_scale, max_anisotropy=p.max_anisotropy, crop_loss=p.crop_loss,
-        lambda_coverage=float(p.resolved("lambda_coverage")), coverage_height=p.coverage_height,
+        lambda_coverage=p.lambda_coverage,
+        coverage_height=p.coverage_height or max(4, int(p.resolved("height")) // 2),
         max_gaussians=p.resolved("max_gaussians"),
         background=tuple(float(x) for x in p.background), random_background=bool(p.resolved("random_background")),
         seed=p.seed, backend=p.backend, device=device,
