@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+import splatting
 from gaussians.appearance import Appearance
 from gaussians.crop_loss import CropResampler, crop_photometric_loss
 from gaussians.densify import DensifyStats, densify_and_prune, gradient_scale, reset_opacity
@@ -269,8 +270,6 @@ class Trainer:
         """mean(1 − alpha) of a coverage_height × 2·coverage_height panorama from a random point of
         the segment between two training cameras (horizontally jittered): pushes holes between
         splats, which only a new viewpoint shows, to close."""
-        import splatting
-
         cfg = self.cfg
         c = self._camera_centres()
         i, j = torch.randint(len(c), (2,), generator=self.gen).tolist()
