@@ -64,16 +64,3 @@ def write_tiny_scene(root: Path, n_train: int = 2, n_test: int = 1, height: int 
 def tiny_scene(tmp_path: Path) -> Path:
     return write_tiny_scene(tmp_path / "tiny")
 
-
-# `make test` runs the suite on two workers (pytest-xdist, `--dist loadgroup`). A module's tests
-# often share a module- or session-scoped fixture (a simulated scene, a finished run, a built
-# extension), so each module runs on one worker and builds it once; the modules named here hold
-# long, independent tests and are spread one test at a time.
-SPREAD_MODULES = {"tests/poses/test_poses.py"}
-
-
-def pytest_collection_modifyitems(config, items):
-    for item in items:
-        module = Path(str(item.fspath)).resolve().relative_to(REPO).as_posix()
-        if module not in SPREAD_MODULES and item.get_closest_marker("xdist_group") is None:
-            item.add_marker(pytest.mark.xdist_group(module))
