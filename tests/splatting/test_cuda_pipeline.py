@@ -107,7 +107,7 @@ def test_a_training_step_never_waits_for_the_device(tmp_path):
     from gaussians.trainer import Trainer, scene_extent
 
     root = tiny_scene(tmp_path / "room")
-    g = random_points(150, 0, rooms=rooms(root))
+    g = random_points(60, 0, rooms=rooms(root))
     cfg = small_config(iterations=10, extent=scene_extent(g.means), backend="cuda", densify_from=100,
                        densify_until=100, log_every=100, sh_degree_every=0)
     tr = Trainer(g, load_views(root), cfg)
