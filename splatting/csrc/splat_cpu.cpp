@@ -25,6 +25,10 @@ constexpr double ALPHA_MAX = 0.99;
 constexpr double T_MIN = 1e-4;
 constexpr double C_MIN = 1e-6;
 constexpr int MAX_TILE = 32;
+// Tile entries read ahead by the rasteriser loops: an entry's rows of P are random
+// accesses (most of P is outside the caches at 300k Gaussians) and one entry's work
+// (a few rows of 8 lanes) is shorter than a memory access.
+constexpr int PREFETCH = 4;
 
 inline int nthreads() { return std::max(1, at::get_num_threads()); }
 // Small jobs run on one thread: waking an OpenMP team costs more than they do
@@ -350,7 +354,8 @@ inline Vec8<double>::V vexp_neg(Vec8<double>::V x) {
 
 template <typename T>
 inline bool span_backward(const G<T>& q, const Span& s, const T* dirs, int64_t HW, int W, int x0, int y0, int tw,
-                          int32_t k, const int32_t* __restrict last, T* __restrict Tr, T* __restrict Sg,
+                          int32_t k, const int32_t* __restrict last, const int32_t* __restrict rowlast,
+                          T* __restrict Tr, T* __restrict Sg,
                           const T* __restrict gCr, const T* __restrict gCg, const T* __restrict gCb,
                           const T* __restrict gD, const T* __restrict gA, PackGrad<T>& acc) {
   using X = Vec8<T>;
@@ -375,6 +380,7 @@ inline bool span_backward(const G<T>& q, const Span& s, const T* dirs, int64_t H
     const M col = iota + h;
     const M lanes = (((col >= a0) & (col < a1)) | ((col >= b0) & (col < b1))) & (col >= from);
     for (int r = s.r0; r <= s.r1; ++r) {
+      if (k > rowlast[r - y0]) continue;  // every pixel of the tile row stopped before this entry
       const int64_t o = (int64_t)r * W + x0 + h;
       const int i = (r - y0) * tw + h;
       const V dx = X::load(dirs + o), dy = X::load(dirs + HW + o), dz = X::load(dirs + 2 * HW + o);
@@ -441,7 +447,7 @@ inline bool span_backward(const G<T>& q, const Span& s, const T* dirs, int64_t H
 template <typename T>
 inline bool span_forward(const G<T>& q, const Span& s, const T* dirs, int64_t HW, int W, int x0, int y0, int tw,
                          int32_t k, T* __restrict Tr, T* __restrict aR, T* __restrict aG, T* __restrict aB,
-                         T* __restrict dep, int32_t* __restrict last, int& nsat) {
+                         T* __restrict dep, int32_t* __restrict last, int* __restrict rowsat, int& nsat) {
   using X = Vec8<T>;
   using V = typename X::V;
   using M = typename X::M;
@@ -453,12 +459,13 @@ inline bool span_forward(const G<T>& q, const Span& s, const T* dirs, int64_t HW
   M iota;
   for (int j = 0; j < 8; ++j) iota[j] = j;
   const V zero = V{}, one = zero + T(1);
-  M anyv = M{}, done = M{};
+  M anyv = M{};
   for (int from = lo; from < hi; from += 8) {
     const int h = std::min(from, tw - 8);
     const M col = iota + h;
     const M lanes = (((col >= a0) & (col < a1)) | ((col >= b0) & (col < b1))) & (col >= from);
     for (int r = s.r0; r <= s.r1; ++r) {
+      if (rowsat[r - y0] == tw) continue;  // every pixel of the tile row has saturated
       const int64_t o = (int64_t)r * W + x0 + h;
       const int i = (r - y0) * tw + h;
       const V dx = X::load(dirs + o), dy = X::load(dirs + HW + o), dz = X::load(dirs + 2 * HW + o);
@@ -488,12 +495,15 @@ inline bool span_forward(const G<T>& q, const Span& s, const T* dirs, int64_t HW
       lst = hk ? (I32{} + k) : lst;
       std::memcpy(last + i, &lst, sizeof(I32));
       anyv |= h_;
-      done -= h_ & (tn < (T)T_MIN);  // masks are -1
+      const M sat = h_ & (tn < (T)T_MIN);  // masks are -1
+      int nd = 0;
+      for (int j = 0; j < 8; ++j) nd -= (int)sat[j];
+      rowsat[r - y0] += nd;
+      nsat += nd;
     }
   }
-  int any = 0, nd = 0;
-  for (int j = 0; j < 8; ++j) any |= anyv[j] != 0, nd += (int)done[j];
-  nsat += nd;
+  int any = 0;
+  for (int j = 0; j < 8; ++j) any |= anyv[j] != 0;
   return any;
 }
 
@@ -518,10 +528,11 @@ void forward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t*
       last[i] = -1;
     }
     int ndone = 0;
+    int rowsat[MAX_TILE] = {};  // per tile row: pixels that have saturated
     for (int64_t k = toff[tile]; k < toff[tile + 1] && ndone < npx; ++k) {
       const int g = tlist[k];
-      if (k + 1 < toff[tile + 1]) {  // the next entry's rows are random accesses: fetch them early
-        const int gn = tlist[k + 1];
+      if (k + PREFETCH < toff[tile + 1]) {  // later entries' rows are random accesses: fetch them early
+        const int gn = tlist[k + PREFETCH];
         __builtin_prefetch(P + (int64_t)gn * PACK);
         __builtin_prefetch(P + (int64_t)gn * PACK + PACK - 1);
         __builtin_prefetch(bbox + 4 * gn);
@@ -531,7 +542,8 @@ void forward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t*
       const G<T> q(P + (int64_t)g * PACK);
       int any = 0;
       if (tw >= 8) {
-        any = span_forward<T>(q, s, dirs, HW, W, x0, y0, tw, (int32_t)k, Tr, accR, accG, accB, dep, last, ndone);
+        any = span_forward<T>(q, s, dirs, HW, W, x0, y0, tw, (int32_t)k, Tr, accR, accG, accB, dep, last, rowsat,
+                              ndone);
       } else {  // tiles narrower than a vector: one row at a time
         for_span_rows<T>(s, dirs, HW, W, x0, y0, tw, [&](auto nl, const T* dx, const T* dy, const T* dz, int i, Lanes ln) {
           any |= row_forward<T, decltype(nl)::value>(q, dx, dy, dz, tw, ln, (int32_t)k, Tr + i, accR + i, accG + i,
@@ -571,6 +583,8 @@ void backward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t
           gCb[MAX_TILE * MAX_TILE], gD[MAX_TILE * MAX_TILE], gA[MAX_TILE * MAX_TILE];
       int32_t last[MAX_TILE * MAX_TILE];
       int64_t kmax = -1;
+      int32_t rowlast[MAX_TILE];  // per tile row: the last entry any of its pixels blended
+      for (int r = y0; r < y1; ++r) rowlast[r - y0] = -1;
       for (int r = y0; r < y1; ++r)
         for (int col = x0; col < x1; ++col) {
           const int i = (r - y0) * tw + (col - x0);
@@ -583,11 +597,12 @@ void backward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t
           gD[i] = gdep[o];
           gA[i] = galpha[o];
           last[i] = lastk[o];
+          rowlast[r - y0] = std::max(rowlast[r - y0], lastk[o]);
           kmax = std::max<int64_t>(kmax, lastk[o]);
         }
       for (int64_t k = kmax; k >= toff[tile]; --k) {
-        if (k - 1 >= toff[tile]) {  // prefetch the previous entry's parameters
-          const int gp = tlist[k - 1];
+        if (k - PREFETCH >= toff[tile]) {  // prefetch a later entry's parameters (random accesses)
+          const int gp = tlist[k - PREFETCH];
           __builtin_prefetch(P + (int64_t)gp * PACK);
           __builtin_prefetch(P + (int64_t)gp * PACK + PACK - 1);
           __builtin_prefetch(bbox + 4 * gp);
@@ -602,7 +617,8 @@ void backward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t
         PackGrad<T> acc;
         int any = 0;
         if (tw >= 8) {
-          any = span_backward<T>(q, s, dirs, HW, W, x0, y0, tw, (int32_t)k, last, Tr, Sg, gCr, gCg, gCb, gD, gA, acc);
+          any = span_backward<T>(q, s, dirs, HW, W, x0, y0, tw, (int32_t)k, last, rowlast, Tr, Sg, gCr, gCg, gCb, gD,
+                                 gA, acc);
         } else {  // tiles narrower than a vector: one row at a time
           for_span_rows<T>(s, dirs, HW, W, x0, y0, tw, [&](auto nl, const T* dx, const T* dy, const T* dz, int i, Lanes ln) {
             any |= row_backward<T, decltype(nl)::value>(q, dx, dy, dz, tw, ln, (int32_t)k, last + i, Tr + i, Sg + i,
