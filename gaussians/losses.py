@@ -51,8 +51,7 @@ def _blur(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """The 2D Gaussian window as two 1D passes (same result as the 11×11 kernel, 5× fewer operations).
 
     On the CPU the compiled kernel's separable blur does it (torch's depthwise conv2d takes
-    ~15× as long there, and was a quarter of a training step at 512×1024); elsewhere, or
-    without the compiled kernel, conv2d."""
+    ~6× as long there); elsewhere, or without the compiled kernel, conv2d."""
     mod = _cpu_kernels(x)
     if mod is not None:
         return mod.blur_separable(x.contiguous(), w[0, 0, 0])

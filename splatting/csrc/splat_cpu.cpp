@@ -326,7 +326,6 @@ struct Vec8 {
     if constexpr (sizeof(T) == 4) return v;
     else return __builtin_convertvector(v, M);
   }
-  static V splat(T x) { return V{} + x; }
 };
 
 // exp(x) for x <= 0 lane by lane, the same operations as exp_neg_f32 (float) or std::exp.
@@ -354,8 +353,7 @@ inline Vec8<double>::V vexp_neg(Vec8<double>::V x) {
 
 template <typename T>
 inline bool span_backward(const G<T>& q, const Span& s, const T* dirs, int64_t HW, int W, int x0, int y0, int tw,
-                          int32_t k, const int32_t* __restrict last, const int32_t* __restrict rowlast,
-                          T* __restrict Tr, T* __restrict Sg,
+                          int32_t k, const int32_t* __restrict last, T* __restrict Tr, T* __restrict Sg,
                           const T* __restrict gCr, const T* __restrict gCg, const T* __restrict gCb,
                           const T* __restrict gD, const T* __restrict gA, PackGrad<T>& acc) {
   using X = Vec8<T>;
@@ -380,7 +378,6 @@ inline bool span_backward(const G<T>& q, const Span& s, const T* dirs, int64_t H
     const M col = iota + h;
     const M lanes = (((col >= a0) & (col < a1)) | ((col >= b0) & (col < b1))) & (col >= from);
     for (int r = s.r0; r <= s.r1; ++r) {
-      if (k > rowlast[r - y0]) continue;  // every pixel of the tile row stopped before this entry
       const int64_t o = (int64_t)r * W + x0 + h;
       const int i = (r - y0) * tw + h;
       const V dx = X::load(dirs + o), dy = X::load(dirs + HW + o), dz = X::load(dirs + 2 * HW + o);
@@ -440,73 +437,6 @@ inline bool span_backward(const G<T>& q, const Span& s, const T* dirs, int64_t H
   return true;
 }
 
-// The forward of one (Gaussian, tile) span in 8-lane vectors, like span_backward: the
-// counts (blended pixels, pixels that saturated) stay per lane over the span and are
-// summed once. Returns whether any pixel blended the Gaussian; adds the saturated ones
-// to `nsat`.
-template <typename T>
-inline bool span_forward(const G<T>& q, const Span& s, const T* dirs, int64_t HW, int W, int x0, int y0, int tw,
-                         int32_t k, T* __restrict Tr, T* __restrict aR, T* __restrict aG, T* __restrict aB,
-                         T* __restrict dep, int32_t* __restrict last, int* __restrict rowsat, int& nsat) {
-  using X = Vec8<T>;
-  using V = typename X::V;
-  using M = typename X::M;
-  using I32 = typename X::I32;
-  const int a0 = s.a0 - x0, a1 = s.a1 - x0, b0 = s.b0 - x0, b1 = s.b1 - x0;
-  int lo = tw, hi = 0;
-  if (a0 < a1) lo = std::min(lo, a0), hi = std::max(hi, a1);
-  if (b0 < b1) lo = std::min(lo, b0), hi = std::max(hi, b1);
-  M iota;
-  for (int j = 0; j < 8; ++j) iota[j] = j;
-  const V zero = V{}, one = zero + T(1);
-  M anyv = M{};
-  for (int from = lo; from < hi; from += 8) {
-    const int h = std::min(from, tw - 8);
-    const M col = iota + h;
-    const M lanes = (((col >= a0) & (col < a1)) | ((col >= b0) & (col < b1))) & (col >= from);
-    for (int r = s.r0; r <= s.r1; ++r) {
-      if (rowsat[r - y0] == tw) continue;  // every pixel of the tile row has saturated
-      const int64_t o = (int64_t)r * W + x0 + h;
-      const int i = (r - y0) * tw + h;
-      const V dx = X::load(dirs + o), dy = X::load(dirs + HW + o), dz = X::load(dirs + 2 * HW + o);
-      const V c = q.nx * dx + q.ny * dy + q.nz * dz;
-      const M ok = c > (T)C_MIN;
-      const V ic = one / (ok ? c : one);
-      const V u = (q.a1x * dx + q.a1y * dy + q.a1z * dz) * ic - q.uc;
-      const V v = (q.a2x * dx + q.a2y * dy + q.a2z * dz) * ic - q.vc;
-      const V p = T(0.5) * (q.q00 * u * u + q.q11 * v * v) + q.q01 * u * v;
-      const V t = X::load(Tr + i);
-      const M h_ = lanes & ok & (p <= q.tau) & (t >= (T)T_MIN);
-      const V e = vexp_neg(h_ ? -p : zero);
-      const V oG = q.op * e;
-      const V alpha = h_ ? (oG < (T)ALPHA_MAX ? oG : zero + (T)ALPHA_MAX) : zero;
-      const V w = alpha * t;
-      X::store(aR + i, X::load(aR + i) + w * q.cr);
-      X::store(aG + i, X::load(aG + i) + w * q.cg);
-      X::store(aB + i, X::load(aB + i) + w * q.cb);
-      X::store(dep + i, X::load(dep + i) + w * q.dist);
-      const V tn = t * (one - alpha);
-      X::store(Tr + i, tn);
-      I32 lst;
-      std::memcpy(&lst, last + i, sizeof(I32));
-      I32 hk;
-      if constexpr (sizeof(T) == 4) hk = h_;
-      else hk = __builtin_convertvector(h_, I32);
-      lst = hk ? (I32{} + k) : lst;
-      std::memcpy(last + i, &lst, sizeof(I32));
-      anyv |= h_;
-      const M sat = h_ & (tn < (T)T_MIN);  // masks are -1
-      int nd = 0;
-      for (int j = 0; j < 8; ++j) nd -= (int)sat[j];
-      rowsat[r - y0] += nd;
-      nsat += nd;
-    }
-  }
-  int any = 0;
-  for (int j = 0; j < 8; ++j) any |= anyv[j] != 0;
-  return any;
-}
-
 template <typename T>
 void forward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t* toff, const int32_t* tlist, int H,
                   int W, int ts, T* out_color, T* out_depth, T* out_T, int32_t* out_last, uint8_t* hit) {
@@ -528,7 +458,6 @@ void forward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t*
       last[i] = -1;
     }
     int ndone = 0;
-    int rowsat[MAX_TILE] = {};  // per tile row: pixels that have saturated
     for (int64_t k = toff[tile]; k < toff[tile + 1] && ndone < npx; ++k) {
       const int g = tlist[k];
       if (k + PREFETCH < toff[tile + 1]) {  // later entries' rows are random accesses: fetch them early
@@ -541,15 +470,10 @@ void forward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t*
       if (!tile_span(bbox + 4 * g, y0, y1, x0, x1, W, s)) continue;
       const G<T> q(P + (int64_t)g * PACK);
       int any = 0;
-      if (tw >= 8) {
-        any = span_forward<T>(q, s, dirs, HW, W, x0, y0, tw, (int32_t)k, Tr, accR, accG, accB, dep, last, rowsat,
-                              ndone);
-      } else {  // tiles narrower than a vector: one row at a time
-        for_span_rows<T>(s, dirs, HW, W, x0, y0, tw, [&](auto nl, const T* dx, const T* dy, const T* dz, int i, Lanes ln) {
-          any |= row_forward<T, decltype(nl)::value>(q, dx, dy, dz, tw, ln, (int32_t)k, Tr + i, accR + i, accG + i,
-                                                     accB + i, dep + i, last + i, ndone) > 0;
-        });
-      }
+      for_span_rows<T>(s, dirs, HW, W, x0, y0, tw, [&](auto nl, const T* dx, const T* dy, const T* dz, int i, Lanes ln) {
+        any |= row_forward<T, decltype(nl)::value>(q, dx, dy, dz, tw, ln, (int32_t)k, Tr + i, accR + i, accG + i,
+                                                   accB + i, dep + i, last + i, ndone) > 0;
+      });
       hit[k] = any;  // the backward skips entries that blended nothing in this tile
     }
     for (int r = y0; r < y1; ++r)
@@ -583,8 +507,6 @@ void backward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t
           gCb[MAX_TILE * MAX_TILE], gD[MAX_TILE * MAX_TILE], gA[MAX_TILE * MAX_TILE];
       int32_t last[MAX_TILE * MAX_TILE];
       int64_t kmax = -1;
-      int32_t rowlast[MAX_TILE];  // per tile row: the last entry any of its pixels blended
-      for (int r = y0; r < y1; ++r) rowlast[r - y0] = -1;
       for (int r = y0; r < y1; ++r)
         for (int col = x0; col < x1; ++col) {
           const int i = (r - y0) * tw + (col - x0);
@@ -597,7 +519,6 @@ void backward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t
           gD[i] = gdep[o];
           gA[i] = galpha[o];
           last[i] = lastk[o];
-          rowlast[r - y0] = std::max(rowlast[r - y0], lastk[o]);
           kmax = std::max<int64_t>(kmax, lastk[o]);
         }
       for (int64_t k = kmax; k >= toff[tile]; --k) {
@@ -617,8 +538,7 @@ void backward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t
         PackGrad<T> acc;
         int any = 0;
         if (tw >= 8) {
-          any = span_backward<T>(q, s, dirs, HW, W, x0, y0, tw, (int32_t)k, last, rowlast, Tr, Sg, gCr, gCg, gCb, gD,
-                                 gA, acc);
+          any = span_backward<T>(q, s, dirs, HW, W, x0, y0, tw, (int32_t)k, last, Tr, Sg, gCr, gCg, gCb, gD, gA, acc);
         } else {  // tiles narrower than a vector: one row at a time
           for_span_rows<T>(s, dirs, HW, W, x0, y0, tw, [&](auto nl, const T* dx, const T* dy, const T* dz, int i, Lanes ln) {
             any |= row_backward<T, decltype(nl)::value>(q, dx, dy, dz, tw, ln, (int32_t)k, last + i, Tr + i, Sg + i,
@@ -1028,7 +948,7 @@ std::vector<torch::Tensor> render_backward(torch::Tensor gcol, torch::Tensor gde
 // ---------------------------------------------------------------------------
 // Separable blur of image planes with zero padding (SSIM's Gaussian window; used by
 // gaussians/losses.py on the CPU): a horizontal pass into a scratch plane, then a
-// vertical one, each vectorised over the columns. torch's depthwise conv2d takes ~15x as
+// vertical one, each vectorised over the columns. torch's depthwise conv2d takes ~6x as
 // long on the CPU for the same 1xK and Kx1 passes.
 template <typename T>
 void blur_planes(const T* x, T* out, T* tmp, int64_t nplanes, int H, int W, const T* k, int K) {
