@@ -351,7 +351,9 @@ inline Vec8<double>::V vexp_neg(Vec8<double>::V x) {
   return x;
 }
 
-template <typename T>
+// DA: whether the depth and alpha images have a gradient (training passes none: their terms
+// are 8 % of this loop).
+template <typename T, bool DA>
 inline bool span_backward(const G<T>& q, const Span& s, const T* dirs, int64_t HW, int W, int x0, int y0, int tw,
                           int32_t k, const int32_t* __restrict last, T* __restrict Tr, T* __restrict Sg,
                           const T* __restrict gCr, const T* __restrict gCg, const T* __restrict gCb,
@@ -395,8 +397,13 @@ inline bool span_backward(const G<T>& q, const Span& s, const T* dirs, int64_t H
       const V tr = X::load(Tr + i), sg = X::load(Sg + i);
       const V Ti = tr * ioma;
       const V w = alpha * Ti;
-      const V gr = X::load(gCr + i), gg = X::load(gCg + i), gb = X::load(gCb + i), gd = X::load(gD + i);
-      const V xg = q.cr * gr + q.cg * gg + q.cb * gb + q.dist * gd + X::load(gA + i);
+      const V gr = X::load(gCr + i), gg = X::load(gCg + i), gb = X::load(gCb + i);
+      V xg = q.cr * gr + q.cg * gg + q.cb * gb;
+      if constexpr (DA) {
+        const V gd = X::load(gD + i);
+        xg += q.dist * gd + X::load(gA + i);
+        sdist += h_ ? w * gd : zero;
+      }
       const V dLda = Ti * xg - sg * ioma;
       X::store(Sg + i, h_ ? sg + w * xg : sg);
       X::store(Tr + i, h_ ? Ti : tr);
@@ -404,7 +411,6 @@ inline bool span_backward(const G<T>& q, const Span& s, const T* dirs, int64_t H
       scr += h_ ? w * gr : zero;
       scg += h_ ? w * gg : zero;
       scb += h_ ? w * gb : zero;
-      sdist += h_ ? w * gd : zero;
       // no gradient through the 0.99 clamp (docs/splatting.md)
       const M g = h_ & (oG < (T)ALPHA_MAX);
       const V dpow = g ? -oG * dLda : zero;  // zero off the hits: every sum below vanishes there
@@ -490,7 +496,7 @@ void forward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t*
   }
 }
 
-template <typename T>
+template <typename T, bool DA>
 void backward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t* toff, const int32_t* tlist, int H,
                    int W, int ts, const T* gcol, const T* gdep, const T* galpha, const T* Tfin, const int32_t* lastk,
                    const uint8_t* hit, int nt, T* pgrad /* [pairs, PACK - 1] */, uint8_t* written) {
@@ -538,7 +544,7 @@ void backward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t
         PackGrad<T> acc;
         int any = 0;
         if (tw >= 8) {
-          any = span_backward<T>(q, s, dirs, HW, W, x0, y0, tw, (int32_t)k, last, Tr, Sg, gCr, gCg, gCb, gD, gA, acc);
+          any = span_backward<T, DA>(q, s, dirs, HW, W, x0, y0, tw, (int32_t)k, last, Tr, Sg, gCr, gCg, gCb, gD, gA, acc);
         } else {  // tiles narrower than a vector: one row at a time
           for_span_rows<T>(s, dirs, HW, W, x0, y0, tw, [&](auto nl, const T* dx, const T* dy, const T* dz, int i, Lanes ln) {
             any |= row_backward<T, decltype(nl)::value>(q, dx, dy, dz, tw, ln, (int32_t)k, last + i, Tr + i, Sg + i,
@@ -607,8 +613,9 @@ torch::Tensor backward(torch::Tensor P, torch::Tensor dirs, torch::Tensor bbox, 
   const int nt = threads_for(npairs, (int)ts);
   auto pgrad = torch::empty({npairs, PACK - 1}, P.options());
   auto written = torch::zeros({npairs}, torch::kUInt8);
+  const bool da = gdep.any().item<bool>() || galpha.any().item<bool>();  // NaN counts as non-zero
   AT_DISPATCH_FLOATING_TYPES(P.scalar_type(), "splat_backward", [&] {
-    backward_impl<scalar_t>(dirs.data_ptr<scalar_t>(), P.data_ptr<scalar_t>(), bbox.data_ptr<int32_t>(),
+    (da ? backward_impl<scalar_t, true> : backward_impl<scalar_t, false>)(dirs.data_ptr<scalar_t>(), P.data_ptr<scalar_t>(), bbox.data_ptr<int32_t>(),
                             toff.data_ptr<int64_t>(), tlist.data_ptr<int32_t>(), (int)H, (int)W, (int)ts,
                             gcol.data_ptr<scalar_t>(), gdep.data_ptr<scalar_t>(), galpha.data_ptr<scalar_t>(),
                             Tf.data_ptr<scalar_t>(), last.data_ptr<int32_t>(), hit.data_ptr<uint8_t>(), nt,
