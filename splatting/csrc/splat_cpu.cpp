@@ -351,8 +351,8 @@ inline Vec8<double>::V vexp_neg(Vec8<double>::V x) {
   return x;
 }
 
-// DA: whether the depth and alpha images have a gradient (training passes none: their terms
-// are 8 % of this loop).
+// DA: whether the depth and alpha images have a gradient (training passes none; their terms
+// are 7 % of this loop).
 template <typename T, bool DA>
 inline bool span_backward(const G<T>& q, const Span& s, const T* dirs, int64_t HW, int W, int x0, int y0, int tw,
                           int32_t k, const int32_t* __restrict last, T* __restrict Tr, T* __restrict Sg,
