@@ -43,7 +43,7 @@ demo: setup
 	$(BIN)/pano-pipe report $(DEMO_SCENE)
 
 test: setup
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 bench: setup
 	$(BIN)/pano-pipe bench render --out docs

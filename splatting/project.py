@@ -147,8 +147,15 @@ def _equirect_bbox(n, hx, hy, camera: EquirectCamera):
     return r0.long(), r1.long(), clo.long(), ncol.long()
 
 
-def project(means, quats, scales, opacities, colors_rgb_fn, viewmat, camera, eps2d, near, extra_grad=()) -> Projection:
-    """Project N Gaussians; ``colors_rgb_fn(dirs_world [Nv,3], idx) -> [Nv,3]`` gives colours."""
+def project(means, quats, scales, opacities, colors_rgb_fn, viewmat, camera, eps2d, near, extra_grad=(),
+            keep: torch.Tensor | None = None) -> Projection:
+    """Project N Gaussians; ``colors_rgb_fn(dirs_world [Nv,3], idx) -> [Nv,3]`` gives colours.
+
+    ``keep`` ([N] bool, the visibility another projection already decided) asks for every row
+    instead: ``packed`` is [N, PACK], rows outside ``keep`` computed from stand-in values (finite,
+    so a zero gradient stays zero), ``vis_idx`` is None and ``bbox`` is not computed. Nothing then
+    depends on the data's values for its shape: no ``nonzero``, no host sync (the ``cuda``
+    backend's backward, splatting/project_triton.py)."""
     dtype, device = means.dtype, means.device
     N = means.shape[0]
     Rv = viewmat[:3, :3].to(dtype)
@@ -156,14 +163,21 @@ def project(means, quats, scales, opacities, colors_rgb_fn, viewmat, camera, eps
     t = means @ Rv.T + tv  # [N,3] camera frame
     eq = isinstance(camera, EquirectCamera)
     sx, sy = camera.pixel_scale
+    dense = keep is not None
 
     with torch.no_grad():
-        r2 = (t * t).sum(-1)
         op = opacities.detach()
-        valid = torch.isfinite(t).all(-1) & (r2 >= near * near) & (op > ALPHA_MIN)
-        if not eq:
-            valid = valid & (t[:, 2] >= near)
-        valid = valid & (torch.isfinite(scales.detach()).all(-1) & torch.isfinite(quats.detach()).all(-1))
+        if dense:
+            valid = keep
+        else:
+            r2 = (t * t).sum(-1)
+            valid = torch.isfinite(t).all(-1) & (r2 >= near * near) & (op > ALPHA_MIN)
+            if not eq:
+                valid = valid & (t[:, 2] >= near)
+            valid = valid & (torch.isfinite(scales.detach()).all(-1) & torch.isfinite(quats.detach()).all(-1))
+    if dense:  # stand-ins for the rows nobody sees: a small round splat, in front of the camera
+        quats = torch.where(valid[:, None], quats, quats.new_tensor([1.0, 0.0, 0.0, 0.0]))
+        scales = torch.where(valid[:, None], scales, scales.new_tensor(1e-2))
     safe_t = torch.tensor([0.0, 0.0, 1.0], dtype=dtype, device=device)
     ts = torch.where(valid[:, None], t, safe_t)
     dist = torch.sqrt(torch.clamp((ts * ts).sum(-1), min=1e-30))
@@ -205,21 +219,18 @@ def project(means, quats, scales, opacities, colors_rgb_fn, viewmat, camera, eps
     det = m01 * m01 + m02 * m02 + m12 * m12 + eps * (a0 + c0) + eps * eps
     a = a0 + eps
     c = c0 + eps
-    with torch.no_grad():
-        tiny = torch.finfo(dtype).tiny * 1e6
-        det_ok = torch.isfinite(det) & (det > tiny) & torch.isfinite(a) & torch.isfinite(c)
-        valid = valid & (det_ok)
+    if not dense:
+        with torch.no_grad():
+            tiny = torch.finfo(dtype).tiny * 1e6
+            det_ok = torch.isfinite(det) & (det > tiny) & torch.isfinite(a) & torch.isfinite(c)
+            valid = valid & (det_ok)
     det_s = torch.where(valid, det, torch.ones_like(det))
     Q = torch.stack([c / det_s, -b / det_s, a / det_s], -1)
 
     with torch.no_grad():
         tau = torch.clamp(torch.log(torch.clamp(op * 255.0, min=1e-30)), max=TAU_MAX).to(dtype)
         tau = torch.where(valid, tau, torch.zeros_like(tau))
-        ad, bd, cd = a.detach(), b.detach(), c.detach()
-        lmax = 0.5 * (ad + cd) + torch.sqrt(torch.clamp(0.25 * (ad - cd) ** 2 + bd * bd, min=0))
-        radius = torch.sqrt(torch.clamp(2.0 * tau * lmax, min=0))
-        valid = valid & (torch.isfinite(radius) & torch.isfinite(Q.detach()).all(-1))
-        H, W = int(camera.height), int(camera.width)
+        rot = None
         if eq:
             es_e, es_s = east_south(ndir.detach())
             e1d, e2d = e1.detach(), e2.detach()
@@ -227,40 +238,12 @@ def project(means, quats, scales, opacities, colors_rgb_fn, viewmat, camera, eps
             rot = torch.stack(
                 [torch.stack([(e1d * es_e).sum(-1), (e1d * es_s).sum(-1)], -1),
                  torch.stack([(e2d * es_e).sum(-1), (e2d * es_s).sum(-1)], -1)], dim=1)
-            # the dilated covariance in the (east, south) frame: rotᵀ Σ rot
-            see = rot[:, 0, 0] ** 2 * ad + 2 * rot[:, 0, 0] * rot[:, 1, 0] * bd + rot[:, 1, 0] ** 2 * cd
-            sss = rot[:, 0, 1] ** 2 * ad + 2 * rot[:, 0, 1] * rot[:, 1, 1] * bd + rot[:, 1, 1] ** 2 * cd
-            zero = torch.zeros_like(see)
-            hx = torch.where(valid, torch.sqrt(torch.clamp(2.0 * tau * see, min=0)) / sx, zero)
-            hy = torch.where(valid, torch.sqrt(torch.clamp(2.0 * tau * sss, min=0)) / sy, zero)
-            r0, r1, cc0, ncol = _equirect_bbox(ndir.detach(), hx, hy, camera)
+        if dense:
+            vis_idx = radii = bbox = None
+            m2d_val = torch.zeros(N, 2, dtype=dtype, device=device)  # a leaf for its gradient only
         else:
-            px = uvc.detach()[:, 0] + camera.cx
-            py = uvc.detach()[:, 1] + camera.cy
-            hx = torch.sqrt(torch.clamp(2.0 * tau * ad, min=0))
-            hy = torch.sqrt(torch.clamp(2.0 * tau * cd, min=0))
-            big = float(4 * (H + W) + 16)
-            mx_, my_ = 1e-3 + 1e-4 * hx, 1e-3 + 1e-4 * hy  # rounding margins
-            xlo = torch.ceil(px - hx - mx_ - 0.5).clamp(-big, big)
-            xhi = torch.floor(px + hx + mx_ - 0.5).clamp(-big, big)
-            ylo = torch.ceil(py - hy - my_ - 0.5).clamp(-big, big)
-            yhi = torch.floor(py + hy + my_ - 0.5).clamp(-big, big)
-            valid = valid & ((xhi >= 0) & (xlo <= W - 1) & (yhi >= 0) & (ylo <= H - 1) & (xhi >= xlo) & (yhi >= ylo))
-            r0 = ylo.clamp(0, H - 1).long()
-            r1 = yhi.clamp(0, H - 1).long()
-            cc0 = xlo.clamp(0, W - 1).long()
-            ncol = (xhi.clamp(0, W - 1).long() - cc0 + 1)
-        valid = valid & (r1 >= r0)
-        vis_idx = torch.nonzero(valid, as_tuple=False).squeeze(1)
-        radii = torch.where(valid, torch.ceil(radius), torch.zeros_like(radius)).to(torch.int32)
-        bbox = torch.stack([r0, r1, cc0, ncol], -1)[vis_idx].to(torch.int32).contiguous()
-
-        # means2d values: pixel position of the centre; gradient: tangent-plane offset in pixels.
-        if eq:
-            m2d_val = camera.dirs_to_pixels(ndir.detach())
-        else:
-            m2d_val = uvc.detach() + torch.tensor([camera.cx, camera.cy], dtype=dtype, device=device)
-            rot = None
+            vis_idx, radii, bbox, m2d_val, valid = _screen_footprint(
+                camera, eq, valid, a, b, c, Q, tau, rot, ndir, uvc)
     need_grad = torch.is_grad_enabled() and any(
         x.requires_grad for x in (means, quats, scales, opacities, viewmat, *extra_grad)
     )
@@ -271,7 +254,7 @@ def project(means, quats, scales, opacities, colors_rgb_fn, viewmat, camera, eps
             delta = (rot @ delta[:, :, None]).squeeze(-1)
         uvc = uvc + delta
 
-    iv = vis_idx
+    iv = slice(None) if dense else vis_idx
     dirs_world = ndir[iv] @ Rv  # camera -> world direction (Rvᵀ d, as row vectors)
     rgb = colors_rgb_fn(dirs_world, iv)
     packed = torch.cat(
@@ -282,3 +265,51 @@ def project(means, quats, scales, opacities, colors_rgb_fn, viewmat, camera, eps
         dim=-1,
     ).contiguous()
     return Projection(packed=packed, vis_idx=vis_idx, visible=valid, radii=radii, bbox=bbox, means2d=means2d)
+
+
+def _screen_footprint(camera, eq, valid, a, b, c, Q, tau, rot, ndir, uvc):
+    """What the rasteriser needs of each splat beyond its packed row (no gradient): the visible
+    Gaussians' indices, radii and pixel boxes, the centres' pixel positions and the final
+    visibility."""
+    dtype, device = ndir.dtype, ndir.device
+    sx, sy = camera.pixel_scale
+    ad, bd, cd = a.detach(), b.detach(), c.detach()
+    lmax = 0.5 * (ad + cd) + torch.sqrt(torch.clamp(0.25 * (ad - cd) ** 2 + bd * bd, min=0))
+    radius = torch.sqrt(torch.clamp(2.0 * tau * lmax, min=0))
+    valid = valid & (torch.isfinite(radius) & torch.isfinite(Q.detach()).all(-1))
+    H, W = int(camera.height), int(camera.width)
+    if eq:
+        # the dilated covariance in the (east, south) frame: rotᵀ Σ rot
+        see = rot[:, 0, 0] ** 2 * ad + 2 * rot[:, 0, 0] * rot[:, 1, 0] * bd + rot[:, 1, 0] ** 2 * cd
+        sss = rot[:, 0, 1] ** 2 * ad + 2 * rot[:, 0, 1] * rot[:, 1, 1] * bd + rot[:, 1, 1] ** 2 * cd
+        zero = torch.zeros_like(see)
+        hx = torch.where(valid, torch.sqrt(torch.clamp(2.0 * tau * see, min=0)) / sx, zero)
+        hy = torch.where(valid, torch.sqrt(torch.clamp(2.0 * tau * sss, min=0)) / sy, zero)
+        r0, r1, cc0, ncol = _equirect_bbox(ndir.detach(), hx, hy, camera)
+    else:
+        px = uvc.detach()[:, 0] + camera.cx
+        py = uvc.detach()[:, 1] + camera.cy
+        hx = torch.sqrt(torch.clamp(2.0 * tau * ad, min=0))
+        hy = torch.sqrt(torch.clamp(2.0 * tau * cd, min=0))
+        big = float(4 * (H + W) + 16)
+        mx_, my_ = 1e-3 + 1e-4 * hx, 1e-3 + 1e-4 * hy  # rounding margins
+        xlo = torch.ceil(px - hx - mx_ - 0.5).clamp(-big, big)
+        xhi = torch.floor(px + hx + mx_ - 0.5).clamp(-big, big)
+        ylo = torch.ceil(py - hy - my_ - 0.5).clamp(-big, big)
+        yhi = torch.floor(py + hy + my_ - 0.5).clamp(-big, big)
+        valid = valid & ((xhi >= 0) & (xlo <= W - 1) & (yhi >= 0) & (ylo <= H - 1) & (xhi >= xlo) & (yhi >= ylo))
+        r0 = ylo.clamp(0, H - 1).long()
+        r1 = yhi.clamp(0, H - 1).long()
+        cc0 = xlo.clamp(0, W - 1).long()
+        ncol = (xhi.clamp(0, W - 1).long() - cc0 + 1)
+    valid = valid & (r1 >= r0)
+    vis_idx = torch.nonzero(valid, as_tuple=False).squeeze(1)
+    radii = torch.where(valid, torch.ceil(radius), torch.zeros_like(radius)).to(torch.int32)
+    bbox = torch.stack([r0, r1, cc0, ncol], -1)[vis_idx].to(torch.int32).contiguous()
+
+    # means2d values: pixel position of the centre; gradient: tangent-plane offset in pixels.
+    if eq:
+        m2d_val = camera.dirs_to_pixels(ndir.detach())
+    else:
+        m2d_val = uvc.detach() + torch.tensor([camera.cx, camera.cy], dtype=dtype, device=device)
+    return vis_idx, radii, bbox, m2d_val, valid

@@ -13,9 +13,10 @@ The box is computed in float64 like the reference, with the angles from a polyno
 box's rounding margin, to which :data:`ANGLE_MARGIN` is added: the box stays conservative,
 and the per-pixel test in the rasteriser is exact, so the image does not change).
 
-Gradients: the backward recomputes the projection with the torch reference under autograd
-and pulls the rasteriser's gradient of the packed rows through it (O(N), once per step; the
-``nonzero`` there is the one host sync of a training step, see docs/gpu.md).
+Gradients: the backward recomputes the projection with the torch reference under autograd,
+on every row with this kernel's visibility (``project(..., keep=visible)``: nothing compacted,
+no host sync), and pulls the rasteriser's gradient of the packed rows through it (O(N), once
+per step; docs/gpu.md).
 """
 
 from __future__ import annotations
@@ -437,7 +438,8 @@ def projection_launch(means, quats, scales, opac, colors, viewmat, camvec, packe
 
 class TritonProject(torch.autograd.Function):
     """Forward: the projection kernel. Backward: the torch reference (splatting.project.project)
-    recomputed under autograd, fed the gradient of the packed rows of the Gaussians it keeps."""
+    recomputed under autograd on every row, with the kernel's visibility, fed the packed rows'
+    gradient."""
 
     @staticmethod
     def forward(ctx, means, quats, scales, opac, colors, viewmat, means2d, camera, eps2d, near, sh_degree, ts,
@@ -457,22 +459,23 @@ class TritonProject(torch.autograd.Function):
                 viewmat.contiguous(), camvec, packed, ints, visible, means2d.detach(), H, W, ts,
                 isinstance(camera, EquirectCamera), deg, K)
             kernel[grid](*args, **options)
-        ctx.save_for_backward(means, quats, scales, opac, colors, viewmat)
+        ctx.save_for_backward(means, quats, scales, opac, colors, viewmat, visible)
         ctx.setup = (camera, eps2d, near, sh_degree, color_fn_factory)
         ctx.mark_non_differentiable(ints, visible)
         return packed, ints, visible
 
     @staticmethod
     def backward(ctx, g_packed, _g_ints, _g_visible):
-        means, quats, scales, opac, colors, viewmat = ctx.saved_tensors
+        means, quats, scales, opac, colors, viewmat, visible = ctx.saved_tensors
         camera, eps2d, near, sh_degree, color_fn_factory = ctx.setup
         inputs = [t.detach().requires_grad_(True) for t in (means, quats, scales, opac, colors, viewmat)]
         with torch.enable_grad():
             m, q, s, o, c, v = inputs
-            proj = project(m, q, s, o, color_fn_factory(c, sh_degree, m.shape[0]), v, camera, eps2d, near)
-            # the Gaussians the reference keeps are those the kernel binned (same tests, same order)
-            grads = torch.autograd.grad(proj.packed, inputs + [proj.means2d], g_packed[proj.vis_idx],
-                                        allow_unused=True)
+            # every row, the kernel's visibility given: no compaction, so no nonzero and no host sync
+            # (the rows it did not bin get a zero gradient from the rasteriser)
+            proj = project(m, q, s, o, color_fn_factory(c, sh_degree, m.shape[0]), v, camera, eps2d, near,
+                           keep=visible)
+            grads = torch.autograd.grad(proj.packed, inputs + [proj.means2d], g_packed, allow_unused=True)
         return (*grads, None, None, None, None, None, None)
 
 

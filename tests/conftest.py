@@ -63,3 +63,4 @@ def write_tiny_scene(root: Path, n_train: int = 2, n_test: int = 1, height: int 
 @pytest.fixture
 def tiny_scene(tmp_path: Path) -> Path:
     return write_tiny_scene(tmp_path / "tiny")
+

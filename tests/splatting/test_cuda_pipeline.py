@@ -59,6 +59,73 @@ def test_one_render_dispatches_few_ops_and_never_syncs(monkeypatch):
         assert full.ops == small.ops and full.kernels == small.kernels, (full.summary(), small.summary())
 
 
+def _count_backward(params, cam, monkeypatch):
+    leaves = [p.detach().clone().requires_grad_(True) for p in params]
+    monkeypatch.setattr(bin_triton, "_CAPACITIES", {})
+    bin_triton.capacity_for(DEVICE).reserve(1 << 12, len(leaves[0]))
+    out = splatting.render(*leaves, eye(torch.float32).to(DEVICE), cam, backend="cuda")
+    with DispatchCounter() as counter:
+        (out.image.sum() + out.depth.sum()).backward()
+    return counter, leaves
+
+
+def test_backward_never_syncs_and_its_op_count_ignores_visibility(monkeypatch):
+    """The projection's gradient is the torch reference on every row (the kernel's visibility
+    given), so the backward has no nonzero, and what it dispatches is the same whichever
+    Gaussians are visible: a fixed sequence, as a CUDA graph needs."""
+    cam = splatting.EquirectCamera(8, 16)
+    params = _small_scene(12, seed=7, shrink=1.0)
+    hidden = [p.clone() for p in params]
+    hidden[0][:6] = 0.0  # half of them at the camera: invisible
+    hidden[3][6:9] = 1e-4  # three more below the 1/255 opacity cut
+    seen, leaves = _count_backward(params, cam, monkeypatch)
+    fewer, hidden_leaves = _count_backward(hidden, cam, monkeypatch)
+    assert seen.syncs == 0 and fewer.syncs == 0, (seen.summary(), fewer.summary())
+    assert seen.ops == fewer.ops and seen.kernels == fewer.kernels == {"_raster_bwd": 1}
+    # the invisible rows get exactly zero, finite gradients; the visible ones are those of `cpp`
+    for g in (leaves[0].grad, hidden_leaves[0].grad, hidden_leaves[2].grad):
+        assert torch.isfinite(g).all()
+    assert float(hidden_leaves[0].grad[:9].abs().max()) == 0.0
+    ref = [p.detach().cpu().requires_grad_(True) for p in hidden]
+    out = splatting.render(*ref, eye(torch.float32), cam, backend="cpp")
+    (out.image.sum() + out.depth.sum()).backward()
+    for a, r in zip(hidden_leaves, ref):
+        assert float((a.grad.cpu() - r.grad).abs().max()) <= 1e-4 * float(r.grad.abs().max()) + 1e-9
+
+
+def test_a_training_step_never_waits_for_the_device(tmp_path, monkeypatch):
+    """Trainer.step with the `cuda` backend, between densifications: no operation that needs a
+    host sync but the CPU-only read of the finite flag (on a GPU the trainer does not read it),
+    and the same operations at every step. The losses take the path they take on a GPU (the
+    compiled CPU SSIM is for CPU tensors only)."""
+    from gaussians import losses
+
+    monkeypatch.setattr(losses, "_cpu_kernels", lambda x: None)
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "train"))
+    from train_helpers import load_views, rooms, small_config, tiny_scene
+
+    from gaussians.init import random_points
+    from gaussians.trainer import Trainer, scene_extent
+
+    root = tiny_scene(tmp_path / "room")
+    g = random_points(60, 0, rooms=rooms(root))
+    cfg = small_config(iterations=10, extent=scene_extent(g.means), backend="cuda", densify_from=100,
+                       densify_until=100, log_every=100, sh_degree_every=0)
+    tr = Trainer(g, load_views(root), cfg)
+    tr.part_seconds = None  # no timing laps (they synchronise on a GPU by design)
+    tr.step()  # sizes the pair list: the one sync of a run between densifications
+    counts = []
+    for _ in range(2):
+        with DispatchCounter() as counter:
+            tr.step()
+        counts.append(counter)
+    assert all(dict(c.sync_ops) == {"_local_scalar_dense": 1} for c in counts), [c.summary() for c in counts]
+    assert counts[0].ops == counts[1].ops and counts[0].kernels == counts[1].kernels
+
+
 def test_first_render_sizes_the_pair_list_once(monkeypatch):
     """The capacity is read once (one sync), then never again until the scene grows by a quarter."""
     monkeypatch.setattr(bin_triton, "_CAPACITIES", {})

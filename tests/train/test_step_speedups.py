@@ -73,7 +73,15 @@ def _ssim_autograd(pred, gt, mask=None, window=11, sigma=1.5):
 
 
 @pytest.mark.parametrize("masked", [False, True])
-def test_ssim_value_and_gradient_match_autograd(masked):
+@pytest.mark.parametrize("compiled", [True, False], ids=["cpu-kernel", "torch"])
+def test_ssim_value_and_gradient_match_autograd(masked, compiled, monkeypatch):
+    """Both implementations: the compiled CPU kernel's fused SSIM and the torch one (GPU, or no compiler)."""
+    import gaussians.losses as losses
+
+    if compiled and losses._cpu_kernels(torch.zeros(1)) is None:
+        pytest.skip("the C++ CPU kernel could not be built here")
+    if not compiled:
+        monkeypatch.setattr(losses, "_cpu_kernels", lambda x: None)
     g = torch.Generator().manual_seed(1)
     gt = torch.rand(24, 40, 3, generator=g, dtype=torch.float64)
     pred = (gt + 0.2 * torch.randn(24, 40, 3, generator=g, dtype=torch.float64)).clamp(0, 1).requires_grad_(True)
