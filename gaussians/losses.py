@@ -99,7 +99,9 @@ class _SSIM(torch.autograd.Function):
     @staticmethod
     def forward(ctx, pred, gt, w, weight):
         c = pred.shape[1]
-        mod = _cpu_kernels(pred)
+        # the compiled kernel takes one [H,W] weight map; a per-image one ([B,H,W], the crop
+        # loss's masks) goes the torch way
+        mod = _cpu_kernels(pred) if weight is None or weight.ndim == 2 else None
         ctx.fused = mod is not None
         if ctx.fused:  # the same math in the compiled kernel: one pass each side of the blurs
             pred, gt = pred.contiguous(), gt.contiguous()
