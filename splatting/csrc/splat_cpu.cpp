@@ -123,22 +123,30 @@ struct G {
         dist(p[18]), tau(p[19]) {}
 };
 
-// exp(x) for x <= 0 in float32 (Cephes expf: range reduction by ln 2 in two parts and a
-// degree-6 polynomial, ~1 ulp; branch-free), cheaper than std::exp; float64 uses std::exp.
-// Used for the hits only, identically in the forward and the backward.
-inline float exp_neg_f32(float x) {
-  x = std::max(x, -87.0f);
-  // n = round(x / ln 2) by the 1.5·2^23 trick (floorf is a libm call in scalar code)
-  const float n = (x * 1.44269504088896341f + 12582912.0f) - 12582912.0f;
-  float r = x - n * 0.693359375f;
+// exp_reduced(x, n) = exp(x) / 2^n with n = round(x / ln 2): the range reduction and polynomial,
+// for a float or an 8-lane float vector (the same operations lane by lane).
+template <typename F>
+inline F exp_reduced(F x, F& n) {
+  // n by the 1.5·2^23 trick (floorf is a libm call in scalar code)
+  n = (x * 1.44269504088896341f + 12582912.0f) - 12582912.0f;
+  F r = x - n * 0.693359375f;
   r = r - n * -2.12194440e-4f;
-  float y = 1.9875691500e-4f;
+  F y = F{} + 1.9875691500e-4f;
   y = y * r + 1.3981999507e-3f;
   y = y * r + 8.3334519073e-3f;
   y = y * r + 4.1665795894e-2f;
   y = y * r + 1.6666665459e-1f;
   y = y * r + 5.0000001201e-1f;
-  y = y * r * r + r + 1.0f;
+  return y * r * r + r + 1.0f;
+}
+
+// exp(x) for x <= 0 in float32 (Cephes expf: range reduction by ln 2 in two parts and a
+// degree-6 polynomial, ~1 ulp; branch-free), cheaper than std::exp; float64 uses std::exp.
+// Used for the hits only, identically in the forward and the backward.
+inline float exp_neg_f32(float x) {
+  x = std::max(x, -87.0f);
+  float n;
+  const float y = exp_reduced(x, n);
   const int32_t e = ((int32_t)n + 127) << 23;
   float sc;
   std::memcpy(&sc, &e, sizeof(sc));
@@ -333,16 +341,8 @@ inline Vec8<float>::V vexp_neg(Vec8<float>::V x) {
   using V = Vec8<float>::V;
   using M = Vec8<float>::M;
   x = x > -87.0f ? x : V{} - 87.0f;
-  const V n = (x * 1.44269504088896341f + 12582912.0f) - 12582912.0f;
-  V r = x - n * 0.693359375f;
-  r = r - n * -2.12194440e-4f;
-  V y = V{} + 1.9875691500e-4f;
-  y = y * r + 1.3981999507e-3f;
-  y = y * r + 8.3334519073e-3f;
-  y = y * r + 4.1665795894e-2f;
-  y = y * r + 1.6666665459e-1f;
-  y = y * r + 5.0000001201e-1f;
-  y = y * r * r + r + 1.0f;
+  V n;
+  const V y = exp_reduced(x, n);
   const M e = (__builtin_convertvector(n, M) + 127) << 23;
   return y * (V)e;
 }
