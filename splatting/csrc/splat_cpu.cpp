@@ -7,6 +7,9 @@
 // front-to-back blending, a pixel stops once its transmittance falls below T_MIN.
 #include <torch/extension.h>
 #include <omp.h>
+#if defined(__AVX512F__)
+#include <immintrin.h>
+#endif
 
 #include <algorithm>
 #include <cmath>
@@ -315,42 +318,137 @@ inline int row_backward(const G<T>& q, const T* __restrict dx, const T* __restri
   return nact;
 }
 
-// ---------------------------------------------------------------------------
-// The backward of one (Gaussian, tile) span in explicit 8-lane vectors (GCC/Clang vector
-// extensions): the 19 gradient sums stay per lane in registers over all the rows of the
-// span and are summed over the lanes once at its end. row_backward's per-row horizontal
-// sums (19 per row, the compiler's reduction of `omp simd`) were most of its time.
+// r[i] = Σ_j v_i[j] for eight 8-lane vectors: three levels of shuffles and adds, the lanes of
+// each level ordered so that the sums come out in input order.
+template <typename V, typename M>
+inline V lane_sums8(V v0, V v1, V v2, V v3, V v4, V v5, V v6, V v7) {
+  const M h1a = {0, 1, 2, 3, 8, 9, 10, 11}, h1b = {4, 5, 6, 7, 12, 13, 14, 15};
+  const M h2a = {0, 1, 8, 9, 4, 5, 12, 13}, h2b = {2, 3, 10, 11, 6, 7, 14, 15};
+  const M h3a = {0, 2, 4, 6, 8, 10, 12, 14}, h3b = {1, 3, 5, 7, 9, 11, 13, 15};
+  auto l1 = [&](V a, V b) { return __builtin_shuffle(a, b, h1a) + __builtin_shuffle(a, b, h1b); };
+  auto l2 = [&](V a, V b) { return __builtin_shuffle(a, b, h2a) + __builtin_shuffle(a, b, h2b); };
+  auto l3 = [&](V a, V b) { return __builtin_shuffle(a, b, h3a) + __builtin_shuffle(a, b, h3b); };
+  return l3(l2(l1(v0, v2), l1(v1, v3)), l2(l1(v4, v6), l1(v5, v7)));
+}
+
+// The backward's vector: R rows of an 8-column window in one register. With AVX-512 a float
+// vector holds two rows (16 lanes), which halves the instructions of a span's rows (a span
+// has ~10 rows on average); otherwise, and for double, one row. Rows are loaded and stored
+// as 8-lane halves at `p` and `p + step`; step = 0 repeats the first row (a span's odd last
+// row), whose upper half is then masked out and not stored.
 template <typename T>
-struct Vec8 {
-  typedef T V __attribute__((vector_size(8 * sizeof(T))));
+struct Rows {
+#if defined(__AVX512F__)
+  static constexpr int R = sizeof(T) == 4 ? 2 : 1;
+#else
+  static constexpr int R = sizeof(T) == 4 ? 2 : 1;
+#endif
+  static constexpr int L = 8 * R;
+  typedef T V __attribute__((vector_size(L * sizeof(T))));
   typedef typename std::conditional<sizeof(T) == 4, int32_t, int64_t>::type I;
-  typedef I M __attribute__((vector_size(8 * sizeof(T))));
-  typedef int32_t I32 __attribute__((vector_size(32)));
-  static V load(const T* p) { V v; std::memcpy(&v, p, sizeof(V)); return v; }
-  static void store(T* p, V v) { std::memcpy(p, &v, sizeof(V)); }
-  static M load_last(const int32_t* p) {
-    I32 v;
-    std::memcpy(&v, p, sizeof(I32));
-    if constexpr (sizeof(T) == 4) return v;
+  typedef I M __attribute__((vector_size(L * sizeof(T))));
+  typedef T V8 __attribute__((vector_size(8 * sizeof(T))));
+  typedef I M8 __attribute__((vector_size(8 * sizeof(T))));
+  typedef int32_t I8 __attribute__((vector_size(32)));
+
+#if defined(__AVX512F__)
+  static V load(const T* p, int64_t step) {
+    if constexpr (R == 2) {
+      const __m512 lo = _mm512_castps256_ps512(_mm256_loadu_ps(p));
+      return (V)_mm512_castpd_ps(
+          _mm512_insertf64x4(_mm512_castps_pd(lo), _mm256_castps_pd(_mm256_loadu_ps(p + step)), 1));
+    } else {
+      return load1(p);
+    }
+  }
+  static void store(T* p, int64_t step, V v, bool two) {
+    if constexpr (R == 2) {
+      _mm256_storeu_ps(p, _mm512_castps512_ps256((__m512)v));
+      if (two) _mm256_storeu_ps(p + step, _mm256_castpd_ps(_mm512_extractf64x4_pd(_mm512_castps_pd((__m512)v), 1)));
+    } else {
+      std::memcpy(p, &v, sizeof(V));
+    }
+  }
+  static M load_last(const int32_t* p, int64_t step) {
+    if constexpr (R == 2) {
+      const __m512i lo = _mm512_castsi256_si512(_mm256_loadu_si256((const __m256i*)p));
+      return (M)_mm512_inserti64x4(lo, _mm256_loadu_si256((const __m256i*)(p + step)), 1);
+    } else {
+      return load_last1(p);
+    }
+  }
+  static void store_last(int32_t* p, int64_t step, M v, bool two) {
+    if constexpr (R == 2) {
+      _mm256_storeu_si256((__m256i*)p, _mm512_castsi512_si256((__m512i)v));
+      if (two) _mm256_storeu_si256((__m256i*)(p + step), _mm512_extracti64x4_epi64((__m512i)v, 1));
+    } else {
+      store_last1(p, v);
+    }
+  }
+#else
+  static void store_last(int32_t* p, int64_t, M v, bool) { store_last1(p, v); }
+  static V load(const T* p, int64_t) { return load1(p); }
+  static void store(T* p, int64_t, V v, bool) { std::memcpy(p, &v, sizeof(V)); }
+  static M load_last(const int32_t* p, int64_t) { return load_last1(p); }
+#endif
+  static V load1(const T* p) {
+    V v;
+    std::memcpy(&v, p, sizeof(V));
+    return v;
+  }
+  static void store_last1(int32_t* p, M v) {
+    if constexpr (sizeof(T) == 4) {
+      std::memcpy(p, &v, sizeof(I8));
+    } else {
+      const I8 w = __builtin_convertvector(v, I8);
+      std::memcpy(p, &w, sizeof(I8));
+    }
+  }
+  static M load_last1(const int32_t* p) {
+    I8 v;
+    std::memcpy(&v, p, sizeof(I8));
+    if constexpr (sizeof(T) == 4) return (M)v;
     else return __builtin_convertvector(v, M);
+  }
+  // the sum of the R rows' lanes, as one 8-lane vector
+  static V8 fold(V v) {
+    if constexpr (R == 2) {
+      V8 a, b;
+      std::memcpy(&a, &v, sizeof(V8));
+      std::memcpy(&b, reinterpret_cast<const char*>(&v) + sizeof(V8), sizeof(V8));
+      return a + b;
+    } else {
+      return (V8)v;
+    }
   }
 };
 
 // exp(x) for x <= 0 lane by lane, the same operations as exp_neg_f32 (float) or std::exp.
-inline Vec8<float>::V vexp_neg(Vec8<float>::V x) {
-  using V = Vec8<float>::V;
-  using M = Vec8<float>::M;
-  x = x > -87.0f ? x : V{} - 87.0f;
-  V n;
-  const V y = exp_reduced(x, n);
-  const M e = (__builtin_convertvector(n, M) + 127) << 23;
-  return y * (V)e;
-}
-inline Vec8<double>::V vexp_neg(Vec8<double>::V x) {
-  for (int j = 0; j < 8; ++j) x[j] = std::exp(x[j]);
-  return x;
+template <typename V, typename M>
+inline V vexp_neg(V x) {
+  if constexpr (std::is_same<decltype(x[0] + 0), float>::value) {
+    x = x > -87.0f ? x : V{} - 87.0f;
+    V n;
+    const V y = exp_reduced(x, n);
+    const M e = (__builtin_convertvector(n, M) + 127) << 23;
+    return y * (V)e;
+  } else {
+    for (int j = 0; j < (int)(sizeof(V) / sizeof(x[0])); ++j) x[j] = std::exp(x[j]);
+    return x;
+  }
 }
 
+// The backward of one (Gaussian, tile) span in explicit vectors (GCC/Clang vector
+// extensions, Rows above): the gradient sums stay per lane in registers over all the rows of
+// the span and are summed over the lanes once at its end (row_backward's per-row horizontal
+// sums, the compiler's reduction of `omp simd`, were most of its time).
+//
+// The 9 sums of the ray-direction gradients (a1, a2, n: Σ ∂L/∂h0 · d, ...) are not summed
+// per lane: a1, a2 and n are orthogonal (s·e1, s·e2, n for the panorama; sx·x̂, sy·ŷ, ẑ for
+// the pinhole), so every ray is d = c n + h0 a1/|a1|² + h1 a2/|a2|² with h0 = U c, h1 = V c
+// (U = u + uc, V = v + vc), and each of those sums is a combination of the sums of du, dv,
+// dpow·(u², uv, v²) (which the conic and centre gradients need anyway) and two more, K·U
+// and K·V with K = du U + dv V. Twelve sums instead of nineteen fit the registers.
 // DA: whether the depth and alpha images have a gradient (training passes none; their terms
 // are 7 % of this loop).
 template <typename T, bool DA>
@@ -358,55 +456,57 @@ inline bool span_backward(const G<T>& q, const Span& s, const T* dirs, int64_t H
                           int32_t k, const int32_t* __restrict last, T* __restrict Tr, T* __restrict Sg,
                           const T* __restrict gCr, const T* __restrict gCg, const T* __restrict gCb,
                           const T* __restrict gD, const T* __restrict gA, PackGrad<T>& acc) {
-  using X = Vec8<T>;
+  using X = Rows<T>;
   using V = typename X::V;
   using M = typename X::M;
+  constexpr int R = X::R;
   // the span's columns relative to the tile: [a0, a1) and the wrapped [b0, b1)
   const int a0 = s.a0 - x0, a1 = s.a1 - x0, b0 = s.b0 - x0, b1 = s.b1 - x0;
   int lo = tw, hi = 0;
   if (a0 < a1) lo = std::min(lo, a0), hi = std::max(hi, a1);
   if (b0 < b1) lo = std::min(lo, b0), hi = std::max(hi, b1);
-  M iota;
-  for (int j = 0; j < 8; ++j) iota[j] = j;
+  M col8, upper;  // lane -> column in its 8-lane row; lanes of the second row
+  for (int j = 0; j < X::L; ++j) col8[j] = j % 8, upper[j] = j >= 8 ? -1 : 0;
   const V zero = V{}, one = zero + T(1);
-  V sa1x = zero, sa1y = zero, sa1z = zero, sa2x = zero, sa2y = zero, sa2z = zero, snx = zero, sny = zero,
-    snz = zero, suc = zero, svc = zero, sq00 = zero, sq01 = zero, sq11 = zero, sop = zero, scr = zero, scg = zero,
-    scb = zero, sdist = zero;
+  V sdu = zero, sdv = zero, suu = zero, suv = zero, svv = zero, sku = zero, skv = zero, sop = zero, scr = zero,
+    scg = zero, scb = zero, sdist = zero;
   M anyv = M{};
-  // 8-lane windows from the span's first column; the last one is moved left to end at
+  // 8-column windows from the span's first column; the last one is moved left to end at
   // the tile's edge, its lanes before `from` belonging to the previous window
   for (int from = lo; from < hi; from += 8) {
     const int h = std::min(from, tw - 8);
-    const M col = iota + h;
+    const M col = col8 + h;
     const M lanes = (((col >= a0) & (col < a1)) | ((col >= b0) & (col < b1))) & (col >= from);
-    for (int r = s.r0; r <= s.r1; ++r) {
-      const int64_t o = (int64_t)r * W + x0 + h;
-      const int i = (r - y0) * tw + h;
-      const V dx = X::load(dirs + o), dy = X::load(dirs + HW + o), dz = X::load(dirs + 2 * HW + o);
+    for (int r = s.r0; r <= s.r1; r += R) {
+      const bool two = R == 2 && r < s.r1;
+      const int64_t o = (int64_t)r * W + x0 + h, so = two ? W : 0;
+      const int i = (r - y0) * tw + h, si = two ? tw : 0;
+      const V dx = X::load(dirs + o, so), dy = X::load(dirs + HW + o, so), dz = X::load(dirs + 2 * HW + o, so);
       const V c = q.nx * dx + q.ny * dy + q.nz * dz;
       const M ok = c > (T)C_MIN;
       const V ic = one / (ok ? c : one);
       const V u = (q.a1x * dx + q.a1y * dy + q.a1z * dz) * ic - q.uc;
       const V v = (q.a2x * dx + q.a2y * dy + q.a2z * dz) * ic - q.vc;
       const V p = T(0.5) * (q.q00 * u * u + q.q11 * v * v) + q.q01 * u * v;
-      const M h_ = lanes & ok & (p <= q.tau) & (k <= X::load_last(last + i));
-      const V Gv = vexp_neg(h_ ? -p : zero);
+      const M rows = two ? lanes : lanes & ~upper;
+      const M h_ = rows & ok & (p <= q.tau) & (k <= X::load_last(last + i, si));
+      const V Gv = vexp_neg<V, M>(h_ ? -p : zero);
       const V oG = q.op * Gv;
       const V alpha = h_ ? (oG < (T)ALPHA_MAX ? oG : zero + (T)ALPHA_MAX) : zero;
       const V ioma = one / (one - alpha);
-      const V tr = X::load(Tr + i), sg = X::load(Sg + i);
+      const V tr = X::load(Tr + i, si), sg = X::load(Sg + i, si);
       const V Ti = tr * ioma;
       const V w = alpha * Ti;
-      const V gr = X::load(gCr + i), gg = X::load(gCg + i), gb = X::load(gCb + i);
+      const V gr = X::load(gCr + i, si), gg = X::load(gCg + i, si), gb = X::load(gCb + i, si);
       V xg = q.cr * gr + q.cg * gg + q.cb * gb;
       if constexpr (DA) {
-        const V gd = X::load(gD + i);
-        xg += q.dist * gd + X::load(gA + i);
+        const V gd = X::load(gD + i, si);
+        xg += q.dist * gd + X::load(gA + i, si);
         sdist += h_ ? w * gd : zero;
       }
       const V dLda = Ti * xg - sg * ioma;
-      X::store(Sg + i, h_ ? sg + w * xg : sg);
-      X::store(Tr + i, h_ ? Ti : tr);
+      X::store(Sg + i, si, h_ ? sg + w * xg : sg, two);
+      X::store(Tr + i, si, h_ ? Ti : tr, two);
       anyv |= h_;
       scr += h_ ? w * gr : zero;
       scg += h_ ? w * gg : zero;
@@ -417,30 +517,108 @@ inline bool span_backward(const G<T>& q, const Span& s, const T* dirs, int64_t H
       sop += g ? Gv * dLda : zero;
       const V du = dpow * (q.q00 * u + q.q01 * v);
       const V dv = dpow * (q.q01 * u + q.q11 * v);
-      sq00 += dpow * u * u;
-      sq01 += dpow * u * v;
-      sq11 += dpow * v * v;
-      suc -= du;
-      svc -= dv;
-      // h0 = (u + uc) c, h1 = (v + vc) c
-      const V dh0 = du * ic, dh1 = dv * ic;
-      const V dc = -(dh0 * (u + q.uc) + dh1 * (v + q.vc));
-      sa1x += dh0 * dx; sa1y += dh0 * dy; sa1z += dh0 * dz;
-      sa2x += dh1 * dx; sa2y += dh1 * dy; sa2z += dh1 * dz;
-      snx += dc * dx; sny += dc * dy; snz += dc * dz;
+      const V pu = dpow * u;
+      suu += pu * u;
+      suv += pu * v;
+      svv += dpow * v * v;
+      sdu += du;
+      sdv += dv;
+      const V U = u + q.uc, Vv = v + q.vc;
+      const V K = du * U + dv * Vv;
+      sku += K * U;
+      skv += K * Vv;
     }
   }
   bool any = false;
-  for (int j = 0; j < 8; ++j) any |= anyv[j] != 0;
+  for (int j = 0; j < X::L; ++j) any |= anyv[j] != 0;
   if (!any) return false;
-  const V sums[PACK - 1] = {sa1x, sa1y, sa1z, sa2x, sa2y, sa2z, snx, sny, snz, suc,
-                            svc, T(0.5) * sq00, sq01, T(0.5) * sq11, sop, scr, scg, scb, sdist};
-  for (int i = 0; i < PACK - 1; ++i) {
-    T t = 0;
-    for (int j = 0; j < 8; ++j) t += sums[i][j];
-    acc.v[i] += t;
+  using V8 = typename X::V8;
+  using M8 = typename X::M8;
+  const V8 z8 = V8{};
+  const V8 r0 = lane_sums8<V8, M8>(X::fold(sdu), X::fold(sdv), X::fold(suu), X::fold(suv), X::fold(svv),
+                                   X::fold(sku), X::fold(skv), X::fold(sop));
+  const V8 r1 = lane_sums8<V8, M8>(X::fold(scr), X::fold(scg), X::fold(scb), X::fold(sdist), z8, z8, z8, z8);
+  const T Sdu = r0[0], Sdv = r0[1], Suu = r0[2], Suv = r0[3], Svv = r0[4], SKU = r0[5], SKV = r0[6];
+  // Σ du·U, Σ du·V, Σ dv·U, Σ dv·V from the conic sums
+  const T duU = q.q00 * Suu + q.q01 * Suv + q.uc * Sdu, duV = q.q00 * Suv + q.q01 * Svv + q.vc * Sdu;
+  const T dvU = q.q01 * Suu + q.q11 * Suv + q.uc * Sdv, dvV = q.q01 * Suv + q.q11 * Svv + q.vc * Sdv;
+  const T SK = duU + dvV;
+  const T i1 = T(1) / (q.a1x * q.a1x + q.a1y * q.a1y + q.a1z * q.a1z);
+  const T i2 = T(1) / (q.a2x * q.a2x + q.a2y * q.a2y + q.a2z * q.a2z);
+  const T n[3] = {q.nx, q.ny, q.nz}, e1[3] = {q.a1x * i1, q.a1y * i1, q.a1z * i1},
+          e2[3] = {q.a2x * i2, q.a2y * i2, q.a2z * i2};
+  for (int j = 0; j < 3; ++j) {
+    acc.v[j] += n[j] * Sdu + e1[j] * duU + e2[j] * duV;       // ∂/∂a1 = Σ du ic d
+    acc.v[3 + j] += n[j] * Sdv + e1[j] * dvU + e2[j] * dvV;   // ∂/∂a2 = Σ dv ic d
+    acc.v[6 + j] -= n[j] * SK + e1[j] * SKU + e2[j] * SKV;    // ∂/∂n = -Σ K ic d
   }
+  acc.v[9] -= Sdu;
+  acc.v[10] -= Sdv;
+  acc.v[11] += T(0.5) * Suu;
+  acc.v[12] += Suv;
+  acc.v[13] += T(0.5) * Svv;
+  acc.v[14] += r0[7];
+  for (int j = 0; j < 4; ++j) acc.v[15 + j] += r1[j];
   return true;
+}
+
+// The forward of one (Gaussian, tile) span in the backward's vectors (Rows: two rows per
+// register with AVX-512), with the same per-lane operations as row_forward and
+// span_backward, so that the backward recomputes every alpha bit for bit. Returns whether
+// any pixel blended; adds the pixels that saturated to `nsat`.
+template <typename T>
+inline bool span_forward(const G<T>& q, const Span& s, const T* dirs, int64_t HW, int W, int x0, int y0, int tw,
+                         int32_t k, T* __restrict Tr, T* __restrict aR, T* __restrict aG, T* __restrict aB,
+                         T* __restrict dep, int32_t* __restrict last, int& nsat) {
+  using X = Rows<T>;
+  using V = typename X::V;
+  using M = typename X::M;
+  constexpr int R = X::R;
+  const int a0 = s.a0 - x0, a1 = s.a1 - x0, b0 = s.b0 - x0, b1 = s.b1 - x0;
+  int lo = tw, hi = 0;
+  if (a0 < a1) lo = std::min(lo, a0), hi = std::max(hi, a1);
+  if (b0 < b1) lo = std::min(lo, b0), hi = std::max(hi, b1);
+  M col8, upper;
+  for (int j = 0; j < X::L; ++j) col8[j] = j % 8, upper[j] = j >= 8 ? -1 : 0;
+  const V zero = V{}, one = zero + T(1);
+  const M kv = M{} + k;
+  M anyv = M{}, satv = M{};
+  for (int from = lo; from < hi; from += 8) {
+    const int h = std::min(from, tw - 8);
+    const M col = col8 + h;
+    const M lanes = (((col >= a0) & (col < a1)) | ((col >= b0) & (col < b1))) & (col >= from);
+    for (int r = s.r0; r <= s.r1; r += R) {
+      const bool two = R == 2 && r < s.r1;
+      const int64_t o = (int64_t)r * W + x0 + h, so = two ? W : 0;
+      const int i = (r - y0) * tw + h, si = two ? tw : 0;
+      const V dx = X::load(dirs + o, so), dy = X::load(dirs + HW + o, so), dz = X::load(dirs + 2 * HW + o, so);
+      const V c = q.nx * dx + q.ny * dy + q.nz * dz;
+      const M ok = c > (T)C_MIN;
+      const V ic = one / (ok ? c : one);
+      const V u = (q.a1x * dx + q.a1y * dy + q.a1z * dz) * ic - q.uc;
+      const V v = (q.a2x * dx + q.a2y * dy + q.a2z * dz) * ic - q.vc;
+      const V p = T(0.5) * (q.q00 * u * u + q.q11 * v * v) + q.q01 * u * v;
+      const M rows = two ? lanes : lanes & ~upper;
+      const V t = X::load(Tr + i, si);
+      const M h_ = rows & ok & (p <= q.tau) & (t >= (T)T_MIN);
+      const V Gv = vexp_neg<V, M>(h_ ? -p : zero);
+      const V oG = q.op * Gv;
+      const V alpha = h_ ? (oG < (T)ALPHA_MAX ? oG : zero + (T)ALPHA_MAX) : zero;
+      const V w = alpha * t;
+      X::store(aR + i, si, X::load(aR + i, si) + w * q.cr, two);
+      X::store(aG + i, si, X::load(aG + i, si) + w * q.cg, two);
+      X::store(aB + i, si, X::load(aB + i, si) + w * q.cb, two);
+      X::store(dep + i, si, X::load(dep + i, si) + w * q.dist, two);
+      const V tn = t * (one - alpha);
+      X::store(Tr + i, si, tn, two);
+      X::store_last(last + i, si, h_ ? kv : X::load_last(last + i, si), two);
+      anyv |= h_;
+      satv -= h_ & (tn < (T)T_MIN);  // lanes are 0 or -1
+    }
+  }
+  bool any = false;
+  for (int j = 0; j < X::L; ++j) any |= anyv[j] != 0, nsat += (int)satv[j];
+  return any;
 }
 
 template <typename T>
@@ -476,10 +654,14 @@ void forward_impl(const T* dirs, const T* P, const int32_t* bbox, const int64_t*
       if (!tile_span(bbox + 4 * g, y0, y1, x0, x1, W, s)) continue;
       const G<T> q(P + (int64_t)g * PACK);
       int any = 0;
-      for_span_rows<T>(s, dirs, HW, W, x0, y0, tw, [&](auto nl, const T* dx, const T* dy, const T* dz, int i, Lanes ln) {
-        any |= row_forward<T, decltype(nl)::value>(q, dx, dy, dz, tw, ln, (int32_t)k, Tr + i, accR + i, accG + i,
-                                                   accB + i, dep + i, last + i, ndone) > 0;
-      });
+      if (tw >= 8) {
+        any = span_forward<T>(q, s, dirs, HW, W, x0, y0, tw, (int32_t)k, Tr, accR, accG, accB, dep, last, ndone);
+      } else {  // tiles narrower than a vector: one row at a time
+        for_span_rows<T>(s, dirs, HW, W, x0, y0, tw, [&](auto nl, const T* dx, const T* dy, const T* dz, int i, Lanes ln) {
+          any |= row_forward<T, decltype(nl)::value>(q, dx, dy, dz, tw, ln, (int32_t)k, Tr + i, accR + i, accG + i,
+                                                     accB + i, dep + i, last + i, ndone) > 0;
+        });
+      }
       hit[k] = any;  // the backward skips entries that blended nothing in this tile
     }
     for (int r = y0; r < y1; ++r)
