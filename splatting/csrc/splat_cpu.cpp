@@ -341,7 +341,7 @@ struct Rows {
 #if defined(__AVX512F__)
   static constexpr int R = sizeof(T) == 4 ? 2 : 1;
 #else
-  static constexpr int R = sizeof(T) == 4 ? 2 : 1;
+  static constexpr int R = 1;
 #endif
   static constexpr int L = 8 * R;
   typedef T V __attribute__((vector_size(L * sizeof(T))));
