@@ -886,10 +886,10 @@ void project_all(const proj::Cam& cam, const T* Rv, const T* tv, const T* means,
     valid[g] = ok;
     radii[g] = ok ? (int32_t)std::ceil(radius) : 0;
     if (cam.kind == 0) {
-      if (!have_angles) phi = std::atan2((double)st.n[0], (double)st.n[2]);
+      if (!have_angles) phi = proj::angle((double)st.n[0], (double)st.n[2]);
       if (!(theta == theta)) {  // NaN: not needed by the box; means2d needs only precision T
-        const T x = st.n[0], y = st.n[1], z = st.n[2];
-        theta = std::atan2(-y, std::sqrt(x * x + z * z));
+        const double x = st.n[0], y = st.n[1], z = st.n[2];
+        theta = proj::angle(-y, std::sqrt(x * x + z * z));
       }
       m2d[2 * g] = (T)((phi / (2 * proj::PI) + 0.5) * cam.W - 0.5);
       m2d[2 * g + 1] = (T)((0.5 - theta / proj::PI) * cam.H - 0.5);
