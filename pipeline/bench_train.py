@@ -78,7 +78,7 @@ def _summary(res: dict) -> dict:
 
 def bench_train(scene: Path | None, device: str, preset: str, height: int, out_md: Path, out_json: Path,
                 iterations: int | None = None, against: Path | None = None, repeats: int = 1,
-                log=print) -> dict:
+                this_overrides: dict | None = None, log=print) -> dict:
     if device == "cuda" and not torch.cuda.is_available():
         raise PanoError("--device", "cuda asked for, but torch sees no CUDA device here (docs/gpu.md)")
     if against is not None and not (against / "pipeline" / "engine.py").is_file():
@@ -89,6 +89,11 @@ def bench_train(scene: Path | None, device: str, preset: str, height: int, out_m
     if iterations is not None:
         train_cfg["iterations"] = int(iterations)
     config = {"train": train_cfg, "evaluate": {"device": device}}
+    configs = {name: config for name in checkouts}
+    if this_overrides:  # e.g. an older checkout's defaults, so that both train the same way
+        configs["this"] = dict(config)
+        for stage, params in this_overrides.items():
+            configs["this"][stage] = {**config.get(stage, {}), **params}
     runs: dict[str, list[dict]] = {k: [] for k in checkouts}
     with tempfile.TemporaryDirectory(prefix="pano-bench-train-") as tmp:
         if scene is None:
@@ -101,14 +106,14 @@ def bench_train(scene: Path | None, device: str, preset: str, height: int, out_m
         for name, co in checkouts.items():  # the stages before train, once per checkout
             prepared[name] = Path(tmp) / f"upstream-{name}"
             log(f"bench train: {name} ({co}): the stages before train")
-            _run_in(co, scene, prepared[name], config, "align")
+            _run_in(co, scene, prepared[name], configs[name], "align")
         for r in range(repeats):
             for name, co in checkouts.items():  # alternately, so both see the same load
                 run_dir = Path(tmp) / f"run-{name}-{r}"
                 shutil.copytree(prepared[name], run_dir)
                 log(f"bench train: {name}, repeat {r + 1}/{repeats}: train + evaluate, train.preset={preset}, "
                     f"device={device}" + (f", {iterations} iterations" if iterations else ""))
-                s = _summary(_run_in(co, scene, run_dir, config, None))
+                s = _summary(_run_in(co, scene, run_dir, configs[name], None))
                 log(f"  {s['iterations_per_s']:.3f} it/s, held-out PSNR {_fmt(s['heldout_psnr'], 2)} dB, "
                     f"{s['num_gaussians']:,} Gaussians")
                 runs[name].append(s)
@@ -116,7 +121,7 @@ def bench_train(scene: Path | None, device: str, preset: str, height: int, out_m
     result = {
         "scene": str(scene), "preset": preset, "device": device, "height": height, "iterations": iterations,
         "gpu": torch.cuda.get_device_name() if device == "cuda" else None, "repeats": repeats,
-        "checkouts": {k: str(v) for k, v in checkouts.items()},
+        "checkouts": {k: str(v) for k, v in checkouts.items()}, "this_overrides": this_overrides or {},
         "runs": runs, **_median(runs["this"]),
     }
     if against is not None:
@@ -157,6 +162,8 @@ def _markdown(r: dict, scene: Path, against: Path | None) -> str:
         cmd += f" --iterations {r['iterations']}"
     if against is not None:
         cmd += f" --against {against} --repeats {r['repeats']}"
+    for stage, params in r.get("this_overrides", {}).items():
+        cmd += "".join(f" --set {stage}.{k}={v}" for k, v in params.items())
     what = "the simulated demo scene" if "demo" in str(scene) else str(scene)
     rows = [("this", r)] + ([("other", r["other"])] if against is not None else [])
     text = f"""# Training benchmark ({where})

@@ -567,17 +567,22 @@ def bench_train_command(
         help="Another pano-pipe checkout (e.g. a git worktree of an older commit) to run the same bench on, "
              "alternately with this one, and compare.")] = None,
     repeats: Annotated[int, typer.Option(min=1, help="Runs per checkout (medians are reported).")] = 1,
+    sets: Annotated[Optional[list[str]], typer.Option(
+        "--set", help="STAGE.PARAM=VALUE for this checkout only (repeatable): e.g. the defaults of the older "
+                      "checkout given to --against, so that both train the same way.")] = None,
     out: BenchOutOpt = BENCH_OUT,
 ) -> None:
     """Iterations/s, seconds per part of the step and held-out PSNR of a training preset through `run all`."""
     from pipeline.bench_train import bench_train
+
+    overrides, _ = load_config(None, sets)
 
     if device not in ("cpu", "cuda"):
         raise PanoError("--device", f"must be cpu or cuda, got {device!r}")
     if preset not in ("fast", "paper", "quality"):
         raise PanoError("--preset", f"must be fast, paper or quality, got {preset!r}")
     bench_train(scene, device, preset, height, out / "bench_train.md", out / "bench_train.json",
-                iterations=iterations, against=against, repeats=repeats)
+                iterations=iterations, against=against, repeats=repeats, this_overrides=overrides)
 
 
 @bench_app.command("pipeline")

@@ -4,7 +4,7 @@ The build is cached in ``$PANO_PIPE_CACHE`` (default ``~/.cache/pano-pipe``) und
 ``splatting-<key>``, the key hashing everything the binary depends on: the sources,
 the compiler flags, the compiler (``$CXX`` or ``c++``, and its ``--version``), the torch
 version *and install folder* (its headers and libraries are absolute paths in the build),
-the Python version and the CPU model (``-march=native``). A changed kernel, compiler,
+the Python version and the CPU model (``-march=native``, or ``$PANO_PIPE_MARCH``). A changed kernel, compiler,
 virtual environment or machine therefore builds its own folder, never rewrites another's.
 
 Several processes may load or build at once (two test suites, a test suite and a
@@ -50,7 +50,10 @@ except ImportError:  # pragma: no cover - not POSIX: no inter-process lock, publ
     fcntl = None
 
 _SRC = Path(__file__).parent / "csrc" / "splat_cpu.cpp"
-_CFLAGS = ["-O3", "-fopenmp", "-march=native", "-fno-math-errno"]
+# -march: this machine's instruction set by default; $PANO_PIPE_MARCH names another (e.g.
+# x86-64-v3 for a build shared by machines with and without AVX-512)
+_MARCH = os.environ.get("PANO_PIPE_MARCH", "native")
+_CFLAGS = ["-O3", "-fopenmp", f"-march={_MARCH}", "-fno-math-errno"]
 _LDFLAGS = ["-fopenmp"]
 _LIB_EXT = ".pyd" if sys.platform == "win32" else ".so"  # what cpp_extension names the library
 _WAIT_ENV = "PANO_PIPE_BUILD_WAIT"

@@ -35,3 +35,31 @@ def test_against_must_be_a_checkout(tmp_path):
     with pytest.raises(PanoError, match="not a pano-pipe checkout"):
         bench_train(None, "cpu", "paper", 16, tmp_path / "b.md", tmp_path / "b.json", iterations=1, against=tmp_path)
     assert not (tmp_path / "b.json").exists()
+
+
+def test_set_overrides_reach_this_checkout_only(tmp_path, monkeypatch):
+    """`--set` (e.g. an older checkout's defaults) changes this checkout's config, not the other's,
+    and the printed command repeats it."""
+    import pipeline.bench_train as bt
+
+    other = tmp_path / "older"
+    (other / "pipeline").mkdir(parents=True)
+    (other / "pipeline" / "engine.py").write_text("")
+    seen = []
+
+    def fake_run_in(checkout, scene, run_dir, config, until):
+        seen.append((checkout, until, config))
+        run_dir.mkdir(parents=True, exist_ok=True)
+        return {"wall": 1.0, "train": {"train_seconds": 2.0, "iterations": 4, "num_gaussians": 10},
+                "evaluate": {"mean": {"psnr": 30.0}}}
+
+    monkeypatch.setattr(bt, "_run_in", fake_run_in)
+    res = bench_train(tmp_path / "scene", "cpu", "paper", 16, tmp_path / "b.md", tmp_path / "b.json", iterations=4,
+                      against=other, this_overrides={"train": {"lr_scale": 1.0}}, log=lambda *_: None)
+    this_cfgs = [c for co, _, c in seen if co != other.resolve()]
+    other_cfgs = [c for co, _, c in seen if co == other.resolve()]
+    assert this_cfgs and other_cfgs
+    assert all(c["train"]["lr_scale"] == 1.0 and c["train"]["iterations"] == 4 for c in this_cfgs)
+    assert all("lr_scale" not in c["train"] and c["train"]["iterations"] == 4 for c in other_cfgs)
+    assert res["this_overrides"] == {"train": {"lr_scale": 1.0}}
+    assert "--set train.lr_scale=1.0" in (tmp_path / "b.md").read_text()
