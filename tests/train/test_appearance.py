@@ -63,7 +63,9 @@ def test_training_learns_a_darker_panoramas_exposure(tiny_room):
     dark = views[0].name
     views = darkened(views, dark, 0.6)
     g = random_points(600, 0, rooms=rooms(tiny_room))
-    cfg = small_config(iterations=120, extent=scene_extent(g.means), lambda_layout=0.0, appearance=True,
+    # 200 iterations: at 120 the separation depended on float rounding (densification decisions in the
+    # first iterations); from 200 it is clear with either kernel (ratio ~0.77)
+    cfg = small_config(iterations=200, extent=scene_extent(g.means), lambda_layout=0.0, appearance=True,
                        lr_appearance=0.01)
     tr = Trainer(g, views, cfg)
     tr.train()
