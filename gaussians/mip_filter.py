@@ -33,7 +33,7 @@ import torch.nn.functional as F
 from gaussians.model import Gaussians
 
 __all__ = ["DEFAULT_VARIANCE", "sampling_rate", "filter_variance", "filtered_log_scales", "filtered_opacity_logits",
-           "filtered"]
+           "filtered", "reset_cap_logits"]
 
 #: The official code's `filter_3D = distance / focal * sqrt(0.2)`: the low-pass's variance, in
 #: (sampling intervals)²
@@ -106,3 +106,13 @@ def filtered(g: Gaussians, var: torch.Tensor, keep_integral: bool = True) -> Gau
     if not keep_integral:
         return replace(g, log_scales=ls)
     return replace(g, log_scales=ls, opacity_logits=filtered_opacity_logits(g.opacity_logits, g.log_scales, ls))
+
+
+def reset_cap_logits(log_scales: torch.Tensor, var: torch.Tensor, max_opacity: float = 0.01) -> torch.Tensor:
+    """[N] the largest raw opacity logit whose *filtered* opacity is at most `max_opacity`: the
+    opacity reset of Mip-Splatting's code, which clamps the opacity as drawn (α · r ≤ m, so
+    α ≤ m / r), not the raw one. +inf where m / r ≥ 1 (no raw opacity reaches the cap)."""
+    new = filtered_log_scales(log_scales, var)
+    log_q = math.log(max_opacity) - (log_scales - new).sum(dim=1)  # log(m / r)
+    q = torch.exp(log_q)
+    return torch.where(q < 1, log_q - torch.log1p(-q.clamp(max=1 - 1e-12)), torch.full_like(q, float("inf")))

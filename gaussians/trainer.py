@@ -36,7 +36,7 @@ from gaussians.appearance import Appearance
 from gaussians.crop_loss import CropResampler, crop_photometric_loss
 from gaussians.densify import DensifyStats, densify_and_prune, gradient_scale, reset_opacity
 from gaussians.losses import layout_loss, photometric_loss, psnr, psnr_tensor, solid_angle_weight
-from gaussians.mip_filter import DEFAULT_VARIANCE, filter_variance, filtered, sampling_rate
+from gaussians.mip_filter import DEFAULT_VARIANCE, filter_variance, filtered, reset_cap_logits, sampling_rate
 from gaussians.model import PARAM_NAMES, Gaussians, render
 from gaussians.optim import Adam, expon_lr
 
@@ -413,7 +413,16 @@ class Trainer:
                     self._has_layout = None
                     self.stats = DensifyStats.zeros(len(self.g), dtype=self.g.means.dtype, device=self.device)
                 if cfg.opacity_reset_every > 0 and it % cfg.opacity_reset_every == 0:
-                    reset_opacity(self.g, self.opt)
+                    if cfg.mip_filter:  # clamp the opacity as drawn (Mip-Splatting's reset)
+                        rate = sampling_rate(self.g.means, [v.viewmat for v in self.views],
+                                             [v.camera for v in self.views])
+                        cap = reset_cap_logits(self.g.log_scales, filter_variance(rate, cfg.mip_filter_variance))
+                        if not cfg.mip_filter_keep_integral:
+                            cap = torch.full_like(cap, math.log(0.01 / 0.99))
+                        self.g.opacity_logits.copy_(torch.minimum(self.g.opacity_logits, cap))
+                        self.opt.reset("opacity_logits")
+                    else:
+                        reset_opacity(self.g, self.opt)
             lap("densify")
 
         # 0-dim tensors, not floats: reading them would wait for the device every iteration;

@@ -90,3 +90,25 @@ def test_widen_only_keeps_the_opacity():
     f = filtered(g, torch.tensor([1e-4], dtype=torch.float64), keep_integral=False)
     assert torch.equal(f.opacity_logits, g.opacity_logits)
     assert torch.allclose(f.scales, torch.sqrt(g.scales ** 2 + 1e-4))
+
+
+def test_reset_cap_clamps_the_filtered_opacity():
+    """After the reset the opacity as drawn is min(drawn, 0.01): a wide Gaussian (r ≈ 1) is capped
+    near 0.01 raw, a thin one (r = 0.0184, drawn 0.0092 < 0.01) keeps its raw opacity."""
+    from gaussians.mip_filter import reset_cap_logits
+
+    ls = torch.log(torch.tensor([[0.001, 0.01, 0.1], [0.5, 0.5, 0.5]], dtype=torch.float64))
+    var = torch.full((2,), 4.81914e-4, dtype=torch.float64)
+    o = torch.tensor([0.0, 3.0], dtype=torch.float64)
+    g = Gaussians.create(torch.zeros(2, 3, dtype=torch.float64), sh_degree=0, log_scales=ls, dtype=torch.float64)
+    g.opacity_logits = torch.minimum(o, reset_cap_logits(ls, var, 0.01))
+    drawn = filtered(g, var).opacities
+    before = filtered(replace_opacity(g, o), var).opacities
+    assert torch.allclose(drawn, torch.minimum(before, torch.tensor(0.01, dtype=torch.float64)), rtol=1e-9)
+    assert g.opacity_logits[0].item() == 0.0 and drawn[1].item() == pytest.approx(0.01)
+
+
+def replace_opacity(g: Gaussians, o: torch.Tensor) -> Gaussians:
+    from dataclasses import replace
+
+    return replace(g, opacity_logits=o)
