@@ -44,7 +44,8 @@ _SCREEN_MARGIN = 0.15
 
 
 @torch.no_grad()
-def sampling_rate(means: torch.Tensor, viewmats: list[torch.Tensor], cameras: list, near: float = 0.05) -> torch.Tensor:
+def sampling_rate(means: torch.Tensor, viewmats: list[torch.Tensor], cameras: list,
+                  near: float = 0.05) -> torch.Tensor:
     """[N] the finest sampling rate (pixels per metre) at which any of the training cameras
     (`viewmats` world-to-camera [4,4], `cameras` splatting.EquirectCamera / PinholeCamera)
     sees each Gaussian centre `means` [N,3]. A panorama sees every point at its distance; a pinhole

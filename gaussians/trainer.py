@@ -282,8 +282,10 @@ class Trainer:
         alone keeps a resumed run identical to an uninterrupted one)."""
         if not self.cfg.mip_filter:
             return self.g
-        rate = sampling_rate(self.g.means.detach(), [v.viewmat for v in self.views], [v.camera for v in self.views])
-        return filtered(self.g, filter_variance(rate, self.cfg.mip_filter_variance), self.cfg.mip_filter_keep_integral)
+        rate = sampling_rate(self.g.means.detach(), [v.viewmat for v in self.views],
+                             [v.camera for v in self.views])
+        return filtered(self.g, filter_variance(rate, self.cfg.mip_filter_variance),
+                        self.cfg.mip_filter_keep_integral)
 
     def _coverage_loss(self, g: Gaussians) -> torch.Tensor:
         """mean(1 − alpha) of a coverage_height × 2·coverage_height panorama from a random point of

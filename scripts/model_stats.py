@@ -45,7 +45,8 @@ def main(argv: list[str] | None = None) -> int:
             alphas.append(float(a[m].mean()) if m is not None else float(a.mean()))
         s = torch.sort(g.scales, dim=1, descending=True).values
         ratio = (s[:, 0] / s[:, 1]).numpy()
-        sigma = filter_variance(sampling_rate(g.means, train_viewmats, [equirect_camera(h, w)] * len(train))).sqrt()
+        cams = [equirect_camera(h, w)] * len(train)
+        sigma = filter_variance(sampling_rate(g.means, train_viewmats, cams)).sqrt()
         print(json.dumps({
             "run": str(run), "test_alpha": round(float(np.mean(alphas)), 3),
             "needle_p50_p90_p99": [round(float(np.percentile(ratio, q)), 1) for q in (50, 90, 99)],
