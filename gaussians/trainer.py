@@ -36,6 +36,7 @@ from gaussians.appearance import Appearance
 from gaussians.crop_loss import CropResampler, crop_photometric_loss
 from gaussians.densify import DensifyStats, densify_and_prune, gradient_scale, reset_opacity
 from gaussians.losses import layout_loss, photometric_loss, psnr, psnr_tensor, solid_angle_weight
+from gaussians.mip_filter import DEFAULT_VARIANCE, filter_variance, filtered, reset_cap_logits, sampling_rate
 from gaussians.model import PARAM_NAMES, Gaussians, render
 from gaussians.optim import Adam, expon_lr
 
@@ -72,6 +73,14 @@ class TrainConfig:
     coverage_height: int = 64
     #: horizontal jitter of those positions (× extent) around the segment between two cameras
     coverage_jitter: float = 0.05
+    #: Mip-Splatting's 3D smoothing filter (gaussians/mip_filter.py): every render draws each Gaussian
+    #: convolved with an isotropic low-pass of variance `mip_filter_variance` / ν², ν the finest rate
+    #: (pixels per metre) at which a training camera samples it, opacity scaled to keep its integral;
+    #: the exported model holds the filtered scales and opacities
+    mip_filter: bool = False
+    mip_filter_variance: float = DEFAULT_VARIANCE
+    #: scale the filtered opacity by sqrt(det Σ / det Σ') (Mip-Splatting); False widens only (ablation)
+    mip_filter_keep_integral: bool = True
     # learning rates (3DGS); the position rates are multiplied by the scene extent
     lr_position_init: float = 1.6e-4
     lr_position_final: float = 1.6e-6
@@ -266,7 +275,19 @@ class Trainer:
             self._centres = torch.unique(torch.round(c, decimals=6), dim=0)
         return self._centres
 
-    def _coverage_loss(self) -> torch.Tensor:
+    def _drawn(self) -> Gaussians:
+        """The Gaussians every render draws: the model, through the 3D smoothing filter when on.
+        The sampling rates are recomputed from the current centres at every call (Mip-Splatting
+        recomputes them every 100 iterations; here it costs little, and a function of the model
+        alone keeps a resumed run identical to an uninterrupted one)."""
+        if not self.cfg.mip_filter:
+            return self.g
+        rate = sampling_rate(self.g.means.detach(), [v.viewmat for v in self.views],
+                             [v.camera for v in self.views])
+        return filtered(self.g, filter_variance(rate, self.cfg.mip_filter_variance),
+                        self.cfg.mip_filter_keep_integral)
+
+    def _coverage_loss(self, g: Gaussians) -> torch.Tensor:
         """mean(1 − alpha) of a coverage_height × 2·coverage_height panorama from a random point of
         the segment between two training cameras (horizontally jittered): pushes holes between
         splats, which only a new viewpoint shows, to close."""
@@ -279,7 +300,7 @@ class Trainer:
         viewmat = torch.eye(4, dtype=self.g.means.dtype, device=self.device)
         viewmat[:3, 3] = -pos.to(viewmat.dtype)
         h = int(cfg.coverage_height)
-        out = render(self.g, viewmat, splatting.EquirectCamera(h, 2 * h), backend=cfg.backend,
+        out = render(g, viewmat, splatting.EquirectCamera(h, 2 * h), backend=cfg.backend,
                      background=self._bg, sh_degree=0)
         return (1.0 - out.alpha).mean()
 
@@ -316,7 +337,8 @@ class Trainer:
         bg = self._bg
         if cfg.random_background:
             bg = torch.rand(3, generator=self.gen, dtype=self._bg.dtype).to(self.device)
-        out = render(g, view.viewmat, view.camera, backend=cfg.backend, background=bg,
+        drawn = self._drawn()
+        out = render(drawn, view.viewmat, view.camera, backend=cfg.backend, background=bg,
                      sh_degree=self.active_sh)
         lap("render")
         pred = self._as_trained(view, out.image)
@@ -335,7 +357,7 @@ class Trainer:
             loss = loss + cfg.lambda_appearance_gauge * self.appearance.gauge()
         cov = None
         if cfg.lambda_coverage > 0:
-            cov = self._coverage_loss()
+            cov = self._coverage_loss(drawn)
             loss = loss + cfg.lambda_coverage * cov
         lay = None
         if self._has_layout is None:
@@ -393,7 +415,16 @@ class Trainer:
                     self._has_layout = None
                     self.stats = DensifyStats.zeros(len(self.g), dtype=self.g.means.dtype, device=self.device)
                 if cfg.opacity_reset_every > 0 and it % cfg.opacity_reset_every == 0:
-                    reset_opacity(self.g, self.opt)
+                    if cfg.mip_filter:  # clamp the opacity as drawn (Mip-Splatting's reset)
+                        rate = sampling_rate(self.g.means, [v.viewmat for v in self.views],
+                                             [v.camera for v in self.views])
+                        cap = reset_cap_logits(self.g.log_scales, filter_variance(rate, cfg.mip_filter_variance))
+                        if not cfg.mip_filter_keep_integral:
+                            cap = torch.full_like(cap, math.log(0.01 / 0.99))
+                        self.g.opacity_logits.copy_(torch.minimum(self.g.opacity_logits, cap))
+                        self.opt.reset("opacity_logits")
+                    else:
+                        reset_opacity(self.g, self.opt)
             lap("densify")
 
         # 0-dim tensors, not floats: reading them would wait for the device every iteration;
@@ -463,15 +494,19 @@ class Trainer:
     @torch.no_grad()
     def mean_psnr(self, views: list[TrainView] | None = None) -> float:
         vals = []
+        drawn = self._drawn()
         for v in views or self.views:
-            out = render(self.g, v.viewmat, v.camera, backend=self.cfg.backend, background=self._bg,
+            out = render(drawn, v.viewmat, v.camera, backend=self.cfg.backend, background=self._bg,
                          sh_degree=self.active_sh)
             vals.append(psnr(self._as_trained(v, out.image), v.image, v.mask))
         return float(np.mean(vals))
 
+    @torch.no_grad()
     def final_gaussians(self) -> Gaussians:
-        """The trained model, detached; it keeps all its SH bands (those never activated are zero)."""
-        return self.g.detach()
+        """The trained model as it renders, detached (with mip_filter, the filtered scales and
+        opacities baked in, so a held-out render draws what training drew); it keeps all its SH
+        bands (those never activated are zero)."""
+        return self._drawn().detach()
 
     # -- checkpoints ------------------------------------------------------------
     def state_dict(self) -> dict:

@@ -57,9 +57,9 @@ PRESETS: dict[str, dict] = {
 #: controls for sparse captures, measured in docs/training.md ("Sparse captures: 360° against crops");
 #: the perspective baselines keep 3DGS's behaviour.
 PROJECTION_DEFAULTS: dict[str, dict] = {
-    "360": dict(random_background=False, lr_scale=0.5),
-    "crops": dict(random_background=False, lr_scale=1.0),
-    "cubemap": dict(random_background=False, lr_scale=1.0),
+    "360": dict(random_background=False, lr_scale=0.5, mip_filter=False),
+    "crops": dict(random_background=False, lr_scale=1.0, mip_filter=False),
+    "cubemap": dict(random_background=False, lr_scale=1.0, mip_filter=False),
 }
 
 
@@ -107,6 +107,16 @@ class Params(BaseModel):
     coverage_height: int | None = Field(
         default=None, ge=4, description="Rows of the coverage loss's panorama (None = half the training height: "
         "a coarser render blurs the holes between thin splats shut, a full-size one costs a second render).")
+    mip_filter: bool | None = Field(
+        default=None, description="Mip-Splatting's 3D smoothing filter: each Gaussian drawn convolved with a 3D "
+        "low-pass as wide as the finest training camera's sampling interval at it (no needles thinner than a "
+        "training pixel); the exported model holds the filtered scales and opacities. None = the projection's "
+        "default (off for every projection).")
+    mip_filter_variance: float = Field(
+        default=0.2, gt=0, description="The low-pass's variance in squared sampling intervals (Mip-Splatting: 0.2).")
+    mip_filter_keep_integral: bool = Field(
+        default=True, description="Lower a widened Gaussian's opacity so its integral stays (Mip-Splatting); "
+                                  "false widens only (an ablation).")
     lambda_layout: float | None = Field(
         default=None, ge=0,
         description="λ3, weight of L_layout; default 0.1 for <= 8 training views, 0.01 above (paper).")
@@ -337,6 +347,8 @@ def make_config(p: Params, num_train_views: int, extent: float, device: str = "c
         size_prune_from=p.size_prune_from, solid_angle_weighting=p.solid_angle_weighting,
         lambda_scale=p.lambda_scale, max_anisotropy=p.max_anisotropy, crop_loss=p.crop_loss,
         lambda_coverage=p.lambda_coverage,
+        mip_filter=bool(p.resolved("mip_filter")), mip_filter_variance=p.mip_filter_variance,
+        mip_filter_keep_integral=p.mip_filter_keep_integral,
         coverage_height=p.coverage_height or max(4, int(p.resolved("height")) // 2),
         max_gaussians=p.resolved("max_gaussians"),
         background=tuple(float(x) for x in p.background), random_background=bool(p.resolved("random_background")),

@@ -144,3 +144,23 @@ def test_appearance_gauge_pins_the_mean_transform():
     with torch.no_grad():
         colour = tr.g.sh_dc[0, 0].mean().item() * 0.28209479177387814 + 0.5
     assert colour == pytest.approx(0.5 * 1.125, abs=0.02)
+
+
+def test_mip_filter_opacity_reset_caps_the_drawn_opacity():
+    """With mip_filter the reset clamps the opacity as rendered (filtered) to 0.01, as Mip-Splatting."""
+    import splatting
+    from gaussians.model import Gaussians
+    from gaussians.trainer import TrainView
+
+    gen = torch.Generator().manual_seed(1)
+    g = Gaussians.create(torch.randn(50, 3, generator=gen) + torch.tensor([0.0, 0.0, 3.0]), sh_degree=0,
+                         log_scales=torch.full((50, 3), math.log(0.2)))
+    g.opacity_logits = torch.full((50,), 2.0)
+    view = TrainView("v", torch.full((8, 16, 3), 0.4), torch.eye(4), splatting.EquirectCamera(8, 16))
+    cfg = small_config(iterations=5, extent=1.0, densify_from=100, densify_until=10, opacity_reset_every=5,
+                       mip_filter=True)  # the reset runs within the densification window, as in 3DGS
+    tr = Trainer(g, [view], cfg)
+    tr.train()
+    drawn = torch.sigmoid(tr._drawn().opacity_logits.detach())
+    assert float(drawn.max()) == pytest.approx(0.01, rel=1e-4)
+    assert float(torch.sigmoid(tr.g.opacity_logits.detach()).max()) > 0.01  # the raw one is higher

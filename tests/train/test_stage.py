@@ -177,3 +177,45 @@ def test_ctrl_c_saves_a_checkpoint_and_resume_finishes_identically(tiny_room, tm
     ctx = ctx_for(tiny_room, tmp_path / "b", {**params, "seed": 6}, resume=True, name="out3")
     T.run(ctx)
     assert any("resume" in w for w in ctx.warnings)
+
+
+def test_mip_filter_is_baked_into_the_exported_model(tiny_room, tmp_path):
+    """With mip_filter the PLY holds the filtered Gaussians: every axis at least the low-pass's
+    σ = sqrt(0.2) / ν at its centre (ν from the training panoramas), and its renders at the training
+    views score the PSNR the stage reported from the trainer's own (filtered) renders. Without
+    the filter thinner axes survive, so the floor is not an accident of training."""
+    from gaussians.losses import psnr
+    from gaussians.mip_filter import filter_variance, sampling_rate
+    from gaussians.model import render
+
+    params = {"iterations": 12, "seed": 3}
+    views = ctx_for(tiny_room, tmp_path, {}).scene.manifest.train_views()
+    images = T.load_images(load_scene(tiny_room), views, 16)
+    tv = T.build_views(images, {v.name: v.viewmat for v in views}, "360")
+    floor_ok = {}
+    for mip in (False, True):
+        ctx = ctx_for(tiny_room, tmp_path, {**params, "mip_filter": mip}, name=f"mip{mip}")
+        out = T.run(ctx)
+        g = load_ply(ctx.out_dir / out.ply)
+        sigma = filter_variance(sampling_rate(g.means, [v.viewmat for v in tv], [v.camera for v in tv])).sqrt()
+        floor_ok[mip] = bool((g.scales.min(dim=1).values >= sigma * (1 - 1e-4)).all())
+        with torch.no_grad():
+            p = float(np.mean([psnr(render(g, v.viewmat, v.camera, background=torch.zeros(3)).image, v.image)
+                               for v in tv]))
+        assert p == pytest.approx(out.final_train_psnr, abs=1e-3)
+    assert floor_ok == {False: False, True: True}
+    assert T.make_config(T.Params(), 4, 1.0).mip_filter is False  # off by default
+    assert T.make_config(T.Params(mip_filter=True, mip_filter_variance=0.1), 4, 1.0).mip_filter_variance == 0.1
+
+
+def test_mip_filter_run_resumes_identically(tiny_room, tmp_path, monkeypatch):
+    """The filter is a function of the model and the cameras: a resumed run ends on the same bytes."""
+    params = {"iterations": 10, "checkpoint_every": 0, "seed": 2, "mip_filter": True}
+    ref = T.run(ctx_for(tiny_room, tmp_path / "a", params))
+    monkeypatch.setattr(T, "_DeferredInterrupt", _InterruptAfter)
+    with pytest.raises(KeyboardInterrupt):
+        T.run(ctx_for(tiny_room, tmp_path / "b", params))
+    monkeypatch.undo()
+    out = T.run(ctx_for(tiny_room, tmp_path / "b", params, resume=True, name="out2"))
+    assert out.resumed_from == 7
+    assert (tmp_path / "b" / "out2" / out.ply).read_bytes() == (tmp_path / "a" / "out" / ref.ply).read_bytes()
