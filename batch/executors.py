@@ -16,7 +16,7 @@ from typing import Any, Protocol
 
 #: Environment variables a job reads, passed to Ray workers (a worker on another machine does
 #: not inherit the driver's environment).
-FORWARDED_ENV = ("PANO_PIPE_MAX_MEGAPIXELS", "PANO_PIPE_CACHE", "PANO_PIPE_BUILD_WAIT",
+FORWARDED_ENV = ("PANO_PIPE_MAX_MEGAPIXELS", "PANO_PIPE_CACHE", "PANO_PIPE_BUILD_WAIT", "PANO_PIPE_MARCH",
                  "PANO_PIPE_LPIPS_WEIGHTS", "PANO_PIPE_INJECT_KILL_ONCE")
 
 
