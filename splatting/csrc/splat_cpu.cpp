@@ -438,6 +438,48 @@ inline V vexp_neg(V x) {
   }
 }
 
+// Walks a (Gaussian, tile) span in Rows vectors: 8-column windows from the span's first
+// column (the last one moved left to end at the tile's edge, its lanes before `from`
+// belonging to the previous window), R rows per vector, and evaluates the Gaussian there.
+// Calls body(i, si, two, live, u, v, p): i the first pixel in the tile buffers, si the step to
+// the second row (0 if none; `two` says whether there is one), live the lanes inside the box
+// and in front of the tangent plane, (u, v) and p the offset and power (as `evaluate`). The
+// forward and the backward share it, so the backward recomputes every alpha bit for bit.
+template <typename T, typename F>
+__attribute__((always_inline)) inline void for_span_vectors(const G<T>& q, const Span& s, const T* dirs, int64_t HW, int W, int x0, int y0, int tw,
+                             F&& body) {
+  using X = Rows<T>;
+  using V = typename X::V;
+  using M = typename X::M;
+  constexpr int R = X::R;
+  // the span's columns relative to the tile: [a0, a1) and the wrapped [b0, b1)
+  const int a0 = s.a0 - x0, a1 = s.a1 - x0, b0 = s.b0 - x0, b1 = s.b1 - x0;
+  int lo = tw, hi = 0;
+  if (a0 < a1) lo = std::min(lo, a0), hi = std::max(hi, a1);
+  if (b0 < b1) lo = std::min(lo, b0), hi = std::max(hi, b1);
+  M col8, upper;  // lane -> column in its 8-lane row; lanes of the second row
+  for (int j = 0; j < X::L; ++j) col8[j] = j % 8, upper[j] = j >= 8 ? -1 : 0;
+  const V one = V{} + T(1);
+  for (int from = lo; from < hi; from += 8) {
+    const int h = std::min(from, tw - 8);
+    const M col = col8 + h;
+    const M lanes = (((col >= a0) & (col < a1)) | ((col >= b0) & (col < b1))) & (col >= from);
+    for (int r = s.r0; r <= s.r1; r += R) {
+      const bool two = R == 2 && r < s.r1;
+      const int64_t o = (int64_t)r * W + x0 + h, so = two ? W : 0;
+      const int i = (r - y0) * tw + h, si = two ? tw : 0;
+      const V dx = X::load(dirs + o, so), dy = X::load(dirs + HW + o, so), dz = X::load(dirs + 2 * HW + o, so);
+      const V c = q.nx * dx + q.ny * dy + q.nz * dz;
+      const M ok = c > (T)C_MIN;
+      const V ic = one / (ok ? c : one);
+      const V u = (q.a1x * dx + q.a1y * dy + q.a1z * dz) * ic - q.uc;
+      const V v = (q.a2x * dx + q.a2y * dy + q.a2z * dz) * ic - q.vc;
+      const V p = T(0.5) * (q.q00 * u * u + q.q11 * v * v) + q.q01 * u * v;
+      body(i, si, two, (two ? lanes : lanes & ~upper) & ok, u, v, p);
+    }
+  }
+}
+
 // The backward of one (Gaussian, tile) span in explicit vectors (GCC/Clang vector
 // extensions, Rows above): the gradient sums stay per lane in registers over all the rows of
 // the span and are summed over the lanes once at its end (row_backward's per-row horizontal
@@ -459,76 +501,50 @@ inline bool span_backward(const G<T>& q, const Span& s, const T* dirs, int64_t H
   using X = Rows<T>;
   using V = typename X::V;
   using M = typename X::M;
-  constexpr int R = X::R;
-  // the span's columns relative to the tile: [a0, a1) and the wrapped [b0, b1)
-  const int a0 = s.a0 - x0, a1 = s.a1 - x0, b0 = s.b0 - x0, b1 = s.b1 - x0;
-  int lo = tw, hi = 0;
-  if (a0 < a1) lo = std::min(lo, a0), hi = std::max(hi, a1);
-  if (b0 < b1) lo = std::min(lo, b0), hi = std::max(hi, b1);
-  M col8, upper;  // lane -> column in its 8-lane row; lanes of the second row
-  for (int j = 0; j < X::L; ++j) col8[j] = j % 8, upper[j] = j >= 8 ? -1 : 0;
   const V zero = V{}, one = zero + T(1);
   V sdu = zero, sdv = zero, suu = zero, suv = zero, svv = zero, sku = zero, skv = zero, sop = zero, scr = zero,
     scg = zero, scb = zero, sdist = zero;
   M anyv = M{};
-  // 8-column windows from the span's first column; the last one is moved left to end at
-  // the tile's edge, its lanes before `from` belonging to the previous window
-  for (int from = lo; from < hi; from += 8) {
-    const int h = std::min(from, tw - 8);
-    const M col = col8 + h;
-    const M lanes = (((col >= a0) & (col < a1)) | ((col >= b0) & (col < b1))) & (col >= from);
-    for (int r = s.r0; r <= s.r1; r += R) {
-      const bool two = R == 2 && r < s.r1;
-      const int64_t o = (int64_t)r * W + x0 + h, so = two ? W : 0;
-      const int i = (r - y0) * tw + h, si = two ? tw : 0;
-      const V dx = X::load(dirs + o, so), dy = X::load(dirs + HW + o, so), dz = X::load(dirs + 2 * HW + o, so);
-      const V c = q.nx * dx + q.ny * dy + q.nz * dz;
-      const M ok = c > (T)C_MIN;
-      const V ic = one / (ok ? c : one);
-      const V u = (q.a1x * dx + q.a1y * dy + q.a1z * dz) * ic - q.uc;
-      const V v = (q.a2x * dx + q.a2y * dy + q.a2z * dz) * ic - q.vc;
-      const V p = T(0.5) * (q.q00 * u * u + q.q11 * v * v) + q.q01 * u * v;
-      const M rows = two ? lanes : lanes & ~upper;
-      const M h_ = rows & ok & (p <= q.tau) & (k <= X::load_last(last + i, si));
-      const V Gv = vexp_neg<V, M>(h_ ? -p : zero);
-      const V oG = q.op * Gv;
-      const V alpha = h_ ? (oG < (T)ALPHA_MAX ? oG : zero + (T)ALPHA_MAX) : zero;
-      const V ioma = one / (one - alpha);
-      const V tr = X::load(Tr + i, si), sg = X::load(Sg + i, si);
-      const V Ti = tr * ioma;
-      const V w = alpha * Ti;
-      const V gr = X::load(gCr + i, si), gg = X::load(gCg + i, si), gb = X::load(gCb + i, si);
-      V xg = q.cr * gr + q.cg * gg + q.cb * gb;
-      if constexpr (DA) {
-        const V gd = X::load(gD + i, si);
-        xg += q.dist * gd + X::load(gA + i, si);
-        sdist += h_ ? w * gd : zero;
-      }
-      const V dLda = Ti * xg - sg * ioma;
-      X::store(Sg + i, si, h_ ? sg + w * xg : sg, two);
-      X::store(Tr + i, si, h_ ? Ti : tr, two);
-      anyv |= h_;
-      scr += h_ ? w * gr : zero;
-      scg += h_ ? w * gg : zero;
-      scb += h_ ? w * gb : zero;
-      // no gradient through the 0.99 clamp (docs/splatting.md)
-      const M g = h_ & (oG < (T)ALPHA_MAX);
-      const V dpow = g ? -oG * dLda : zero;  // zero off the hits: every sum below vanishes there
-      sop += g ? Gv * dLda : zero;
-      const V du = dpow * (q.q00 * u + q.q01 * v);
-      const V dv = dpow * (q.q01 * u + q.q11 * v);
-      const V pu = dpow * u;
-      suu += pu * u;
-      suv += pu * v;
-      svv += dpow * v * v;
-      sdu += du;
-      sdv += dv;
-      const V U = u + q.uc, Vv = v + q.vc;
-      const V K = du * U + dv * Vv;
-      sku += K * U;
-      skv += K * Vv;
+  for_span_vectors<T>(q, s, dirs, HW, W, x0, y0, tw, [&](int i, int si, bool two, M live, V u, V v, V p) __attribute__((always_inline)) {
+    const M h_ = live & (p <= q.tau) & (k <= X::load_last(last + i, si));
+    const V Gv = vexp_neg<V, M>(h_ ? -p : zero);
+    const V oG = q.op * Gv;
+    const V alpha = h_ ? (oG < (T)ALPHA_MAX ? oG : zero + (T)ALPHA_MAX) : zero;
+    const V ioma = one / (one - alpha);
+    const V tr = X::load(Tr + i, si), sg = X::load(Sg + i, si);
+    const V Ti = tr * ioma;
+    const V w = alpha * Ti;
+    const V gr = X::load(gCr + i, si), gg = X::load(gCg + i, si), gb = X::load(gCb + i, si);
+    V xg = q.cr * gr + q.cg * gg + q.cb * gb;
+    if constexpr (DA) {
+      const V gd = X::load(gD + i, si);
+      xg += q.dist * gd + X::load(gA + i, si);
+      sdist += h_ ? w * gd : zero;
     }
-  }
+    const V dLda = Ti * xg - sg * ioma;
+    X::store(Sg + i, si, h_ ? sg + w * xg : sg, two);
+    X::store(Tr + i, si, h_ ? Ti : tr, two);
+    anyv |= h_;
+    scr += h_ ? w * gr : zero;
+    scg += h_ ? w * gg : zero;
+    scb += h_ ? w * gb : zero;
+    // no gradient through the 0.99 clamp (docs/splatting.md)
+    const M g = h_ & (oG < (T)ALPHA_MAX);
+    const V dpow = g ? -oG * dLda : zero;  // zero off the hits: every sum below vanishes there
+    sop += g ? Gv * dLda : zero;
+    const V du = dpow * (q.q00 * u + q.q01 * v);
+    const V dv = dpow * (q.q01 * u + q.q11 * v);
+    const V pu = dpow * u;
+    suu += pu * u;
+    suv += pu * v;
+    svv += dpow * v * v;
+    sdu += du;
+    sdv += dv;
+    const V U = u + q.uc, Vv = v + q.vc;
+    const V K = du * U + dv * Vv;
+    sku += K * U;
+    skv += K * Vv;
+  });
   bool any = false;
   for (int j = 0; j < X::L; ++j) any |= anyv[j] != 0;
   if (!any) return false;
@@ -563,9 +579,9 @@ inline bool span_backward(const G<T>& q, const Span& s, const T* dirs, int64_t H
 }
 
 // The forward of one (Gaussian, tile) span in the backward's vectors (Rows: two rows per
-// register with AVX-512), with the same per-lane operations as row_forward and
-// span_backward, so that the backward recomputes every alpha bit for bit. Returns whether
-// any pixel blended; adds the pixels that saturated to `nsat`.
+// register with AVX-512), with the same per-lane operations as row_forward and the
+// evaluation of span_backward (for_span_vectors). Returns whether any pixel blended; adds
+// the pixels that saturated to `nsat`.
 template <typename T>
 inline bool span_forward(const G<T>& q, const Span& s, const T* dirs, int64_t HW, int W, int x0, int y0, int tw,
                          int32_t k, T* __restrict Tr, T* __restrict aR, T* __restrict aG, T* __restrict aB,
@@ -573,49 +589,26 @@ inline bool span_forward(const G<T>& q, const Span& s, const T* dirs, int64_t HW
   using X = Rows<T>;
   using V = typename X::V;
   using M = typename X::M;
-  constexpr int R = X::R;
-  const int a0 = s.a0 - x0, a1 = s.a1 - x0, b0 = s.b0 - x0, b1 = s.b1 - x0;
-  int lo = tw, hi = 0;
-  if (a0 < a1) lo = std::min(lo, a0), hi = std::max(hi, a1);
-  if (b0 < b1) lo = std::min(lo, b0), hi = std::max(hi, b1);
-  M col8, upper;
-  for (int j = 0; j < X::L; ++j) col8[j] = j % 8, upper[j] = j >= 8 ? -1 : 0;
   const V zero = V{}, one = zero + T(1);
   const M kv = M{} + k;
   M anyv = M{}, satv = M{};
-  for (int from = lo; from < hi; from += 8) {
-    const int h = std::min(from, tw - 8);
-    const M col = col8 + h;
-    const M lanes = (((col >= a0) & (col < a1)) | ((col >= b0) & (col < b1))) & (col >= from);
-    for (int r = s.r0; r <= s.r1; r += R) {
-      const bool two = R == 2 && r < s.r1;
-      const int64_t o = (int64_t)r * W + x0 + h, so = two ? W : 0;
-      const int i = (r - y0) * tw + h, si = two ? tw : 0;
-      const V dx = X::load(dirs + o, so), dy = X::load(dirs + HW + o, so), dz = X::load(dirs + 2 * HW + o, so);
-      const V c = q.nx * dx + q.ny * dy + q.nz * dz;
-      const M ok = c > (T)C_MIN;
-      const V ic = one / (ok ? c : one);
-      const V u = (q.a1x * dx + q.a1y * dy + q.a1z * dz) * ic - q.uc;
-      const V v = (q.a2x * dx + q.a2y * dy + q.a2z * dz) * ic - q.vc;
-      const V p = T(0.5) * (q.q00 * u * u + q.q11 * v * v) + q.q01 * u * v;
-      const M rows = two ? lanes : lanes & ~upper;
-      const V t = X::load(Tr + i, si);
-      const M h_ = rows & ok & (p <= q.tau) & (t >= (T)T_MIN);
-      const V Gv = vexp_neg<V, M>(h_ ? -p : zero);
-      const V oG = q.op * Gv;
-      const V alpha = h_ ? (oG < (T)ALPHA_MAX ? oG : zero + (T)ALPHA_MAX) : zero;
-      const V w = alpha * t;
-      X::store(aR + i, si, X::load(aR + i, si) + w * q.cr, two);
-      X::store(aG + i, si, X::load(aG + i, si) + w * q.cg, two);
-      X::store(aB + i, si, X::load(aB + i, si) + w * q.cb, two);
-      X::store(dep + i, si, X::load(dep + i, si) + w * q.dist, two);
-      const V tn = t * (one - alpha);
-      X::store(Tr + i, si, tn, two);
-      X::store_last(last + i, si, h_ ? kv : X::load_last(last + i, si), two);
-      anyv |= h_;
-      satv -= h_ & (tn < (T)T_MIN);  // lanes are 0 or -1
-    }
-  }
+  for_span_vectors<T>(q, s, dirs, HW, W, x0, y0, tw, [&](int i, int si, bool two, M live, V, V, V p) __attribute__((always_inline)) {
+    const V t = X::load(Tr + i, si);
+    const M h_ = live & (p <= q.tau) & (t >= (T)T_MIN);
+    const V Gv = vexp_neg<V, M>(h_ ? -p : zero);
+    const V oG = q.op * Gv;
+    const V alpha = h_ ? (oG < (T)ALPHA_MAX ? oG : zero + (T)ALPHA_MAX) : zero;
+    const V w = alpha * t;
+    X::store(aR + i, si, X::load(aR + i, si) + w * q.cr, two);
+    X::store(aG + i, si, X::load(aG + i, si) + w * q.cg, two);
+    X::store(aB + i, si, X::load(aB + i, si) + w * q.cb, two);
+    X::store(dep + i, si, X::load(dep + i, si) + w * q.dist, two);
+    const V tn = t * (one - alpha);
+    X::store(Tr + i, si, tn, two);
+    X::store_last(last + i, si, h_ ? kv : X::load_last(last + i, si), two);
+    anyv |= h_;
+    satv -= h_ & (tn < (T)T_MIN);  // lanes are 0 or -1
+  });
   bool any = false;
   for (int j = 0; j < X::L; ++j) any |= anyv[j] != 0, nsat += (int)satv[j];
   return any;
