@@ -39,6 +39,7 @@ from gaussians.losses import layout_loss, photometric_loss, psnr, psnr_tensor, s
 from gaussians.mip_filter import DEFAULT_VARIANCE, filter_variance, filtered, reset_cap_logits, sampling_rate
 from gaussians.model import PARAM_NAMES, Gaussians, render
 from gaussians.optim import Adam, expon_lr
+from gaussians.view_jitter import TurnGrid, random_turn, turn_panorama
 
 __all__ = ["TrainConfig", "TrainView", "Trainer", "scene_extent", "CHECKPOINT_NAME"]
 
@@ -81,6 +82,12 @@ class TrainConfig:
     mip_filter_variance: float = DEFAULT_VARIANCE
     #: scale the filtered opacity by sqrt(det Σ / det Σ') (Mip-Splatting); False widens only (ablation)
     mip_filter_keep_integral: bool = True
+    #: turn each training panorama's camera by a random rotation every time it is drawn, its ground
+    #: truth and mask resampled to match (gaussians/view_jitter.py): supervision between the pixel
+    #: centres, as the crops get
+    random_turns: bool = False
+    #: largest tilt of those turns (degrees; the yaw is free)
+    random_turn_tilt_deg: float = 1.0
     # learning rates (3DGS); the position rates are multiplied by the scene extent
     lr_position_init: float = 1.6e-4
     lr_position_final: float = 1.6e-6
@@ -241,6 +248,7 @@ class Trainer:
         self._resamplers: dict = {}
         self._crops: dict = {}
         self._centres: torch.Tensor | None = None
+        self._turn_grids: dict[tuple[int, int], TurnGrid] = {}
 
     def _new_appearance(self) -> Appearance | None:
         if not self.cfg.appearance:
@@ -316,6 +324,24 @@ class Trainer:
             w = self._weights[key] = solid_angle_weight(*key, dtype=view.image.dtype, device=self.device)
         return w
 
+    def _turned(self, view: TrainView) -> TrainView:
+        """`view` with its camera frame turned by a random rotation R, the ground truth and mask
+        resampled so that each pixel still shows what the panorama saw along that ray."""
+        key = (int(view.camera.height), int(view.camera.width))
+        grids = self._turn_grids.get(key)
+        if grids is None:
+            grids = self._turn_grids[key] = TurnGrid(*key, device=self.device)
+        rot = random_turn(self.cfg.random_turn_tilt_deg, self.gen)
+        grid = grids.grid(rot, view.image.dtype)
+        with torch.no_grad():
+            image = turn_panorama(view.image, grid)
+            mask = None
+            if view.mask is not None:
+                mask = turn_panorama(view.mask[..., None].to(view.image.dtype), grid)[..., 0] > 0.999
+        viewmat = view.viewmat.clone()
+        viewmat[:3] = rot.to(viewmat) @ view.viewmat[:3]
+        return TrainView(view.name, image, viewmat, view.camera, mask)
+
     # -- one iteration -------------------------------------------------------
     def _next_view(self) -> TrainView:
         if not self.stack:
@@ -332,6 +358,8 @@ class Trainer:
         if cfg.sh_degree_every > 0 and it % cfg.sh_degree_every == 0:
             self.active_sh = min(self.active_sh + 1, cfg.sh_degree, self.g.sh_degree)
         view = self._next_view()
+        if cfg.random_turns and getattr(view.camera, "kind", None) == "equirect":
+            view = self._turned(view)
         g = self.g
         lap = _Laps(self.part_seconds, self.device)
         bg = self._bg

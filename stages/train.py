@@ -57,9 +57,9 @@ PRESETS: dict[str, dict] = {
 #: controls for sparse captures, measured in docs/training.md ("Sparse captures: 360° against crops");
 #: the perspective baselines keep 3DGS's behaviour.
 PROJECTION_DEFAULTS: dict[str, dict] = {
-    "360": dict(random_background=False, lr_scale=0.5, mip_filter=False),
-    "crops": dict(random_background=False, lr_scale=1.0, mip_filter=False),
-    "cubemap": dict(random_background=False, lr_scale=1.0, mip_filter=False),
+    "360": dict(random_background=False, random_turns=False, lr_scale=0.5, mip_filter=False),
+    "crops": dict(random_background=False, random_turns=False, lr_scale=1.0, mip_filter=False),
+    "cubemap": dict(random_background=False, random_turns=False, lr_scale=1.0, mip_filter=False),
 }
 
 
@@ -107,6 +107,12 @@ class Params(BaseModel):
     coverage_height: int | None = Field(
         default=None, ge=4, description="Rows of the coverage loss's panorama (None = half the training height: "
         "a coarser render blurs the holes between thin splats shut, a full-size one costs a second render).")
+    random_turns: bool | None = Field(
+        default=None, description="360: turn each training panorama's camera by a random rotation every time it "
+        "is drawn (free yaw, tilt up to random_turn_tilt_deg), its ground truth resampled to match: the model is "
+        "supervised between the pixel centres, as the crops are. None = the projection's default.")
+    random_turn_tilt_deg: float = Field(
+        default=1.0, ge=0, le=180, description="Largest tilt of those turns (degrees).")
     mip_filter: bool | None = Field(
         default=None, description="Mip-Splatting's 3D smoothing filter: each Gaussian drawn convolved with a 3D "
         "low-pass as wide as the finest training camera's sampling interval at it (no needles thinner than a "
@@ -347,6 +353,7 @@ def make_config(p: Params, num_train_views: int, extent: float, device: str = "c
         size_prune_from=p.size_prune_from, solid_angle_weighting=p.solid_angle_weighting,
         lambda_scale=p.lambda_scale, max_anisotropy=p.max_anisotropy, crop_loss=p.crop_loss,
         lambda_coverage=p.lambda_coverage,
+        random_turns=bool(p.resolved("random_turns")), random_turn_tilt_deg=p.random_turn_tilt_deg,
         mip_filter=bool(p.resolved("mip_filter")), mip_filter_variance=p.mip_filter_variance,
         mip_filter_keep_integral=p.mip_filter_keep_integral,
         coverage_height=p.coverage_height or max(4, int(p.resolved("height")) // 2),

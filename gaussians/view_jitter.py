@@ -1,0 +1,72 @@
+"""Randomly turned panoramas: supervision between the pixel centres.
+
+A panorama trained as it is samples the model at the same W×H directions every iteration: a
+Gaussian is constrained only where it covers one of those pixel centres, so thin splats through
+the centres, with gaps between them, fit every training view and leave holes that a new
+viewpoint sees (docs/training.md, "Sparse captures"). The perspective crops of the baseline do
+not have this freedom: their pixels fall between the panorama's, with the ground truth
+interpolated there.
+
+`turned_view` gives a training panorama a random rotation R of its camera frame each time it is
+drawn: the render looks along R d for the pixel whose direction was d, and the ground truth (and
+mask) are the panorama resampled bilinearly the same way (`panogeom.rotate_equirect`'s
+out(d) = image(Rᵀ d)), periodic across the ±180° seam. R is a free turn about the vertical (a
+fractional pixel of longitude, as any whole-pixel part is an exact column roll) times a tilt of
+at most `max_tilt_deg` about a random horizontal axis, which moves the sampling between rows.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+__all__ = ["random_turn", "turn_panorama", "TurnGrid"]
+
+
+def random_turn(max_tilt_deg: float, generator: torch.Generator) -> torch.Tensor:
+    """[3,3] float64 rotation: a uniform yaw about +y after a tilt by an angle uniform in
+    [0, max_tilt_deg] about a uniformly oriented horizontal axis."""
+    yaw, axis_angle, tilt = torch.rand(3, generator=generator, dtype=torch.float64).tolist()
+    yaw *= 2.0 * math.pi
+    a = 2.0 * math.pi * axis_angle
+    axis = torch.tensor([math.cos(a), 0.0, math.sin(a)], dtype=torch.float64)
+    t = math.radians(max_tilt_deg) * tilt
+    k = torch.tensor([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]],
+                     dtype=torch.float64)
+    tilt_m = torch.eye(3, dtype=torch.float64) + math.sin(t) * k + (1.0 - math.cos(t)) * (k @ k)
+    c, s = math.cos(yaw), math.sin(yaw)
+    yaw_m = torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], dtype=torch.float64)
+    return yaw_m @ tilt_m
+
+
+class TurnGrid:
+    """The unit ray directions of an H×W panorama's pixel centres (DESIGN.md's mapping), kept on
+    the images' device, and the `grid_sample` grid of a turned copy."""
+
+    def __init__(self, height: int, width: int, device):
+        self.height, self.width = int(height), int(width)
+        lon = ((torch.arange(width, dtype=torch.float64) + 0.5) / width - 0.5) * 2.0 * math.pi
+        lat = (0.5 - (torch.arange(height, dtype=torch.float64) + 0.5) / height) * math.pi
+        lat, lon = torch.meshgrid(lat, lon, indexing="ij")
+        self.dirs = torch.stack([lat.cos() * lon.sin(), -lat.sin(), lat.cos() * lon.cos()], -1).to(device)
+
+    def grid(self, rotation: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+        """[1,H,W,2] sampling grid into the panorama padded by one wrapped column on each side:
+        pixel (u, v) of the turned panorama reads direction Rᵀ d(u, v) of the original."""
+        h, w = self.height, self.width
+        src = self.dirs @ rotation.to(self.dirs)  # row vectors: (Rᵀ d)ᵀ = dᵀ R
+        x, y, z = src.unbind(-1)
+        col = (torch.atan2(x, z) / (2.0 * math.pi) + 0.5) * w - 0.5
+        row = (0.5 - torch.atan2(-y, torch.hypot(x, z)) / math.pi) * h - 0.5
+        mx = torch.remainder(col + 0.5, w) - 0.5 + 1.0
+        my = row.clamp(0.0, h - 1.0)
+        return torch.stack([2.0 * mx / (w + 1) - 1.0, 2.0 * my / max(h - 1, 1) - 1.0], -1)[None].to(dtype)
+
+
+def turn_panorama(image: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    """[H,W,C] panorama resampled bilinearly on `grid` (TurnGrid.grid), periodic across the seam."""
+    padded = torch.cat([image[:, -1:], image, image[:, :1]], dim=1).permute(2, 0, 1)[None]
+    out = F.grid_sample(padded, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    return out[0].permute(1, 2, 0)
