@@ -24,6 +24,8 @@ import torch.nn.functional as F
 
 __all__ = ["random_turn", "turn_panorama", "TurnGrid"]
 
+_PAD = 2  # wrapped columns on each side: bicubic reads two pixels either way
+
 
 def random_turn(max_tilt_deg: float, generator: torch.Generator) -> torch.Tensor:
     """[3,3] float64 rotation: a uniform yaw about +y after a tilt by an angle uniform in
@@ -53,20 +55,22 @@ class TurnGrid:
         self.dirs = torch.stack([lat.cos() * lon.sin(), -lat.sin(), lat.cos() * lon.cos()], -1).to(device)
 
     def grid(self, rotation: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-        """[1,H,W,2] sampling grid into the panorama padded by one wrapped column on each side:
+        """[1,H,W,2] sampling grid into the panorama padded by two wrapped columns on each side:
         pixel (u, v) of the turned panorama reads direction Rᵀ d(u, v) of the original."""
         h, w = self.height, self.width
         src = self.dirs @ rotation.to(self.dirs)  # row vectors: (Rᵀ d)ᵀ = dᵀ R
         x, y, z = src.unbind(-1)
         col = (torch.atan2(x, z) / (2.0 * math.pi) + 0.5) * w - 0.5
         row = (0.5 - torch.atan2(-y, torch.hypot(x, z)) / math.pi) * h - 0.5
-        mx = torch.remainder(col + 0.5, w) - 0.5 + 1.0
+        mx = torch.remainder(col + 0.5, w) - 0.5 + _PAD
         my = row.clamp(0.0, h - 1.0)
-        return torch.stack([2.0 * mx / (w + 1) - 1.0, 2.0 * my / max(h - 1, 1) - 1.0], -1)[None].to(dtype)
+        return torch.stack([2.0 * mx / (w - 1 + 2 * _PAD) - 1.0, 2.0 * my / max(h - 1, 1) - 1.0],
+                           -1)[None].to(dtype)
 
 
-def turn_panorama(image: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
-    """[H,W,C] panorama resampled bilinearly on `grid` (TurnGrid.grid), periodic across the seam."""
-    padded = torch.cat([image[:, -1:], image, image[:, :1]], dim=1).permute(2, 0, 1)[None]
-    out = F.grid_sample(padded, grid, mode="bilinear", padding_mode="border", align_corners=True)
+def turn_panorama(image: torch.Tensor, grid: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
+    """[H,W,C] panorama resampled on `grid` (TurnGrid.grid), periodic across the seam; `mode`
+    "bilinear" or "bicubic" (sharper; may overshoot [0, 1] at edges)."""
+    padded = torch.cat([image[:, -_PAD:], image, image[:, :_PAD]], dim=1).permute(2, 0, 1)[None]
+    out = F.grid_sample(padded, grid, mode=mode, padding_mode="border", align_corners=True)
     return out[0].permute(1, 2, 0)
