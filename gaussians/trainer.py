@@ -30,7 +30,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 import splatting
 from gaussians.appearance import Appearance
@@ -93,13 +92,6 @@ class TrainConfig:
     random_turn_interp: str = "bilinear"
     #: the renderer's screen-space dilation (squared pixels) in training renders
     eps2d: float = 0.3
-    #: draw each training render's dilation uniformly from [eps2d, eps2d_max] (None = fixed eps2d)
-    eps2d_max: float | None = None
-    #: the last this-many iterations render with the renderer's standard dilation 0.3
-    eps2d_final_iterations: int = 0
-    #: render each training panorama at this many times its size and average each k×k block back
-    #: (the loss sees area-sampled pixels, as a camera records them)
-    supersample: int = 1
     # learning rates (3DGS); the position rates are multiplied by the scene extent
     lr_position_init: float = 1.6e-4
     lr_position_final: float = 1.6e-6
@@ -336,15 +328,6 @@ class Trainer:
             w = self._weights[key] = solid_angle_weight(*key, dtype=view.image.dtype, device=self.device)
         return w
 
-    def _dilation(self, it: int) -> float:
-        cfg = self.cfg
-        if it > cfg.iterations - cfg.eps2d_final_iterations:
-            return 0.3
-        if cfg.eps2d_max is not None:
-            u = float(torch.rand((), generator=self.gen, dtype=torch.float64))
-            return cfg.eps2d + u * (cfg.eps2d_max - cfg.eps2d)
-        return cfg.eps2d
-
     def _turned(self, view: TrainView) -> TrainView:
         """`view` with its camera frame turned by a random rotation R, the ground truth and mask
         resampled so that each pixel still shows what the panorama saw along that ray."""
@@ -389,18 +372,10 @@ class Trainer:
         if cfg.random_background:
             bg = torch.rand(3, generator=self.gen, dtype=self._bg.dtype).to(self.device)
         drawn = self._drawn()
-        camera, k = view.camera, int(cfg.supersample)
-        if k > 1 and getattr(camera, "kind", None) == "equirect":
-            camera = splatting.EquirectCamera(k * camera.height, k * camera.width)
-        else:
-            k = 1
-        out = render(drawn, view.viewmat, camera, backend=cfg.backend, background=bg,
-                     sh_degree=self.active_sh, eps2d=self._dilation(it))
-        image = out.image
-        if k > 1:
-            image = F.avg_pool2d(image.permute(2, 0, 1)[None], k)[0].permute(1, 2, 0)
+        out = render(drawn, view.viewmat, view.camera, backend=cfg.backend, background=bg,
+                     sh_degree=self.active_sh, eps2d=cfg.eps2d)
         lap("render")
-        pred = self._as_trained(view, image)
+        pred = self._as_trained(view, out.image)
         crops = self._crop_targets(view)
         if crops is not None:
             photo, l1, s = crop_photometric_loss(pred, crops[1], crops[0], cfg.lambda_l1, cfg.lambda_dssim, crops[2])
@@ -457,7 +432,7 @@ class Trainer:
 
             if it < cfg.densify_until:
                 self.stats.add(out.means2d.grad if out.means2d.requires_grad else None, out.visible, out.radii,
-                               camera.pixel_scale[0], gradient_scale(camera))
+                               view.camera.pixel_scale[0], gradient_scale(view.camera))
                 if it >= cfg.densify_from and it % cfg.densify_every == 0:
                     after_reset = (it >= cfg.size_prune_from if cfg.size_prune_from is not None
                                    else cfg.opacity_reset_every > 0 and it > cfg.opacity_reset_every)

@@ -57,9 +57,9 @@ PRESETS: dict[str, dict] = {
 #: controls for sparse captures, measured in docs/training.md ("Sparse captures: 360° against crops");
 #: the perspective baselines keep 3DGS's behaviour.
 PROJECTION_DEFAULTS: dict[str, dict] = {
-    "360": dict(random_background=False, random_turns=False, eps2d=0.3, lr_scale=0.5, mip_filter=False),
-    "crops": dict(random_background=False, random_turns=False, eps2d=0.3, lr_scale=1.0, mip_filter=False),
-    "cubemap": dict(random_background=False, random_turns=False, eps2d=0.3, lr_scale=1.0, mip_filter=False),
+    "360": dict(random_background=False, random_turns=False, lr_scale=0.5, mip_filter=False),
+    "crops": dict(random_background=False, random_turns=False, lr_scale=1.0, mip_filter=False),
+    "cubemap": dict(random_background=False, random_turns=False, lr_scale=1.0, mip_filter=False),
 }
 
 
@@ -113,17 +113,11 @@ class Params(BaseModel):
         "supervised between the pixel centres, as the crops are. None = the projection's default.")
     random_turn_tilt_deg: float = Field(
         default=1.0, ge=0, le=180, description="Largest tilt of those turns (degrees).")
-    eps2d: float | None = Field(
-        default=None, ge=0, description="The renderer's screen-space dilation in training renders (squared "
-        "pixels). None = the projection's default.")
+    eps2d: float = Field(
+        default=0.3, ge=0, description="The renderer's screen-space dilation in training renders (squared pixels; "
+        "every other render uses the standard 0.3). Sparse captures: 0.1 with random_turns (docs/training.md).")
     random_turn_interp: Literal["bilinear", "bicubic"] = Field(
         default="bilinear", description="Interpolation of the turned ground truth.")
-    eps2d_max: float | None = Field(default=None, ge=0, description="Draw each training render's dilation "
-                                    "uniformly from [eps2d, eps2d_max] (None = fixed).")
-    eps2d_final_iterations: int = Field(default=0, ge=0, description="The last iterations render with the "
-                                        "standard dilation 0.3.")
-    supersample: int = Field(default=1, ge=1, le=4, description="360: render each training panorama k times "
-                             "larger and average k×k blocks back (area-sampled pixels).")
     mip_filter: bool | None = Field(
         default=None, description="Mip-Splatting's 3D smoothing filter: each Gaussian drawn convolved with a 3D "
         "low-pass as wide as the finest training camera's sampling interval at it (no needles thinner than a "
@@ -365,8 +359,7 @@ def make_config(p: Params, num_train_views: int, extent: float, device: str = "c
         lambda_scale=p.lambda_scale, max_anisotropy=p.max_anisotropy, crop_loss=p.crop_loss,
         lambda_coverage=p.lambda_coverage,
         random_turns=bool(p.resolved("random_turns")), random_turn_tilt_deg=p.random_turn_tilt_deg,
-        eps2d=float(p.resolved("eps2d")), supersample=p.supersample,
-        eps2d_max=p.eps2d_max, random_turn_interp=p.random_turn_interp, eps2d_final_iterations=p.eps2d_final_iterations,
+        eps2d=p.eps2d, random_turn_interp=p.random_turn_interp,
         mip_filter=bool(p.resolved("mip_filter")), mip_filter_variance=p.mip_filter_variance,
         mip_filter_keep_integral=p.mip_filter_keep_integral,
         coverage_height=p.coverage_height or max(4, int(p.resolved("height")) // 2),

@@ -85,3 +85,33 @@ def test_turned_view_matches_the_render_of_the_turned_camera():
     assert max(errors) < 0.01
     # and the comparison is not vacuous: the unturned ground truth does not match the turned render
     assert (out - gt)[4:-4].abs().mean().item() > 5 * max(errors)
+
+
+def test_bicubic_turn_rolls_exactly_and_stays_in_range():
+    img = torch.rand(16, 32, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    grids = TurnGrid(16, 32, "cpu")
+    roll = grids.grid(torch.from_numpy(yaw_matrix(2 * math.pi * 3 / 32)), torch.float64)
+    assert torch.allclose(turn_panorama(img, roll, "bicubic"), torch.roll(img, 3, dims=1), atol=1e-12)
+    # a half-pixel yaw: bilinear averages two neighbours (a blur), bicubic less so
+    half = grids.grid(torch.from_numpy(yaw_matrix(2 * math.pi * 0.5 / 32)), torch.float64)
+    lin, cub = turn_panorama(img, half), turn_panorama(img, half, "bicubic")
+    assert torch.allclose(lin, 0.5 * (img + torch.roll(img, 1, dims=1)), atol=1e-12)
+    assert cub.std() > lin.std()
+
+
+def test_training_renders_use_the_configured_dilation():
+    """A ground truth rendered with eps2d 0.05: the trainer's first loss is ~0 when it trains with the
+    same dilation (no turns) and clearly not with the standard 0.3; the turned view carries it too."""
+    g = _splats(1)
+    g.log_scales = torch.full_like(g.log_scales, math.log(0.004))  # thin: the dilation shows
+    cam = splatting.EquirectCamera(32, 64)
+    viewmat = torch.eye(4, dtype=torch.float64)
+    gt = render(g, viewmat, cam, backend="torch", sh_degree=0, eps2d=0.05).image.detach()
+    losses = {}
+    for eps in (0.05, 0.3):
+        cfg = TrainConfig(iterations=1, eps2d=eps, backend="torch", lambda_dssim=0.0, layout_reg=False,
+                          densify_from=10)
+        tr = Trainer(g.detach(), [TrainView("pano_00", gt, viewmat, cam)], cfg)
+        losses[eps] = float(tr.step()["l1"])
+    assert losses[0.05] < 1e-6
+    assert losses[0.3] > 1e-3
