@@ -218,7 +218,7 @@ def densify_and_prune(
     merged = {k: v[keep].contiguous() for k, v in merged.items()}
     if opt is not None:
         opt.keep_rows(keep)
-    out = Gaussians(**merged)
+    out = Gaussians(**merged, eps2d=g.eps2d)
     if req:
         out.requires_grad_(True)
     return DensifyResult(out, cloned=int(c_idx.numel()), split=ns, pruned=pruned)

@@ -11,13 +11,15 @@ into the room) and `u0` (the initial position the regulariser measures from).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import torch
 
 __all__ = ["Gaussians", "PARAM_NAMES", "BUFFER_NAMES", "SH_C0", "rgb_to_sh", "sh_to_rgb", "render", "render_stitched"]
 
 SH_C0 = 0.28209479177387814
+#: 3DGS's screen-space dilation, in squared pixels (splatting.render's default)
+DEFAULT_EPS2D = 0.3
 
 #: The optimised tensors, in the order the optimiser and checkpoints use.
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
@@ -49,6 +51,10 @@ class Gaussians:
     is_layout: torch.Tensor
     normals: torch.Tensor
     u0: torch.Tensor
+    #: The renderer's screen-space dilation (squared pixels) the model was fitted with; every render
+    #: of it uses this one, as the same Gaussians drawn with another dilation lose their fit
+    #: (docs/training.md, "The sampling grid and the dilation"). Stored in the PLY as a comment.
+    eps2d: float = DEFAULT_EPS2D
 
     def __post_init__(self):
         n = self.means.shape[0]
@@ -134,20 +140,20 @@ class Gaussians:
         )
 
     def tensors(self) -> dict[str, torch.Tensor]:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+        return {k: getattr(self, k) for k in PARAM_NAMES + BUFFER_NAMES}
 
     def params(self) -> dict[str, torch.Tensor]:
         return {k: getattr(self, k) for k in PARAM_NAMES}
 
     def detach(self) -> Gaussians:
         """A copy cut from autograd (new leaf tensors, same values)."""
-        return Gaussians(**{k: v.detach().clone() for k, v in self.tensors().items()})
+        return Gaussians(**{k: v.detach().clone() for k, v in self.tensors().items()}, eps2d=self.eps2d)
 
     def to(self, device=None, dtype=None) -> Gaussians:
         out = {}
         for k, v in self.tensors().items():
             out[k] = v.to(device=device) if v.dtype == torch.bool else v.to(device=device, dtype=dtype)
-        return Gaussians(**out)
+        return Gaussians(**out, eps2d=self.eps2d)
 
     def requires_grad_(self, flag: bool = True) -> Gaussians:
         for k in PARAM_NAMES:
@@ -156,12 +162,12 @@ class Gaussians:
 
     def index(self, idx) -> Gaussians:
         """The subset `idx` (bool mask or index tensor), detached."""
-        return Gaussians(**{k: v.detach()[idx].clone() for k, v in self.tensors().items()})
+        return Gaussians(**{k: v.detach()[idx].clone() for k, v in self.tensors().items()}, eps2d=self.eps2d)
 
     @staticmethod
     def cat(parts: list[Gaussians]) -> Gaussians:
-        names = [f.name for f in fields(Gaussians)]
-        return Gaussians(**{k: torch.cat([getattr(p, k).detach() for p in parts], 0) for k in names})
+        return Gaussians(**{k: torch.cat([getattr(p, k).detach() for p in parts], 0)
+                            for k in PARAM_NAMES + BUFFER_NAMES}, eps2d=parts[0].eps2d)
 
     def with_sh_degree(self, degree: int) -> Gaussians:
         """A copy holding `degree` SH bands (extra bands dropped, missing ones zero)."""
@@ -208,6 +214,7 @@ def render(
     import splatting
 
     args, degree, background = _splat_args(g, viewmat, background, sh_degree)
+    kwargs.setdefault("eps2d", g.eps2d)
     return splatting.render(*args, camera, sh_degree=degree, background=background, backend=backend, **kwargs)
 
 
@@ -227,5 +234,6 @@ def render_stitched(
     import splatting
 
     args, degree, background = _splat_args(g, viewmat, background, sh_degree)
+    kwargs.setdefault("eps2d", g.eps2d)
     return splatting.render_stitched(*args, height, width, rig, sh_degree=degree, background=background,
                                      backend=backend, **kwargs)

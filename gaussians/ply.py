@@ -18,6 +18,10 @@ With `extras=True`, `u0_x u0_y u0_z is_layout` follow the standard properties
 so a file round-trips every field of `Gaussians`; viewers that read by name
 ignore them, but SIBR (which reads a fixed struct) does not, so the exported
 point_cloud.ply is written without them.
+
+A model fitted with a screen-space dilation other than 3DGS's 0.3 squared pixels
+(`Gaussians.eps2d`, the train stage's `eps2d`) carries it as a header line
+`comment eps2d 0.1`: our renders read it back, other tools skip comments.
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gaussians.model import Gaussians
+from gaussians.model import DEFAULT_EPS2D, Gaussians
 from runfs.errors import PanoError
 from runfs.limits import check_ply_count
 
@@ -42,6 +46,8 @@ _PLY_TYPES = {
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
 _EXTRA_NAMES = ("u0_x", "u0_y", "u0_z", "is_layout")
+#: header comment holding the model's screen-space dilation (Gaussians.eps2d) when it is not 0.3
+_EPS2D_COMMENT = "eps2d"
 
 
 def ply_property_names(num_rest: int, extras: bool = False) -> list[str]:
@@ -73,7 +79,10 @@ def save_ply(path: str | Path, g: Gaussians, extras: bool = False) -> Path:
     data = np.ascontiguousarray(np.concatenate(cols, axis=1), dtype="<f4")
     names = ply_property_names(num_rest, extras)
     assert data.shape[1] == len(names)
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
+    header = ["ply", "format binary_little_endian 1.0"]
+    if g.eps2d != DEFAULT_EPS2D:  # a comment: other 3DGS tools skip it and draw with their 0.3
+        header.append(f"comment {_EPS2D_COMMENT} {float(g.eps2d)!r}")
+    header.append(f"element vertex {n}")
     header += [f"property float {name}" for name in names]
     header += ["end_header"]
     tmp = path.with_name(path.name + ".tmp")
@@ -84,7 +93,7 @@ def save_ply(path: str | Path, g: Gaussians, extras: bool = False) -> Path:
     return path
 
 
-def _parse_header(f, path: Path) -> tuple[str, int, list[tuple[str, str]]]:
+def _parse_header(f, path: Path) -> tuple[str, int, list[tuple[str, str]], float]:
     first = f.readline().strip()
     if first != b"ply":
         raise ValueError(f"{path}: not a PLY file")
@@ -92,11 +101,20 @@ def _parse_header(f, path: Path) -> tuple[str, int, list[tuple[str, str]]]:
     count = None
     props: list[tuple[str, str]] = []
     current = None
+    eps2d = DEFAULT_EPS2D
     while True:
         line = f.readline()
         if not line:
             raise ValueError(f"{path}: PLY header has no end_header")
         tok = line.decode("ascii", "replace").split()
+        if len(tok) == 3 and tok[:2] == ["comment", _EPS2D_COMMENT]:
+            try:
+                eps2d = float(tok[2])
+            except ValueError:
+                raise ValueError(f"{path}: PLY comment {_EPS2D_COMMENT} is not a number: {tok[2]!r}") from None
+            if not (math.isfinite(eps2d) and eps2d >= 0):
+                raise ValueError(f"{path}: PLY comment {_EPS2D_COMMENT} must be finite and >= 0, got {tok[2]}")
+            continue
         if not tok or tok[0] in ("comment", "obj_info"):
             continue
         if tok[0] == "end_header":
@@ -120,7 +138,7 @@ def _parse_header(f, path: Path) -> tuple[str, int, list[tuple[str, str]]]:
             props.append((tok[2], _PLY_TYPES[tok[1]]))
     if fmt is None or count is None:
         raise ValueError(f"{path}: PLY header lacks a format or a vertex element")
-    return fmt, count, props
+    return fmt, count, props, eps2d
 
 
 def load_ply(path: str | Path, dtype=torch.float32) -> Gaussians:
@@ -131,7 +149,7 @@ def load_ply(path: str | Path, dtype=torch.float32) -> Gaussians:
     """
     path = Path(path)
     with open(path, "rb") as f:
-        fmt, n, props = _parse_header(f, path)
+        fmt, n, props, eps2d = _parse_header(f, path)
         data_bytes = os.fstat(f.fileno()).st_size - f.tell()
         record = sum(np.dtype(t).itemsize for _, t in props)
         try:  # the header's count against the file, before anything is allocated
@@ -189,4 +207,5 @@ def load_ply(path: str | Path, dtype=torch.float32) -> Gaussians:
         is_layout=torch.from_numpy(np.ascontiguousarray(is_layout)),
         normals=t(normals),
         u0=t(u0),
+        eps2d=eps2d,
     )

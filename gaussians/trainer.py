@@ -25,7 +25,7 @@ import os
 import pickle
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +37,7 @@ from gaussians.crop_loss import CropResampler, crop_photometric_loss
 from gaussians.densify import DensifyStats, densify_and_prune, gradient_scale, reset_opacity
 from gaussians.losses import layout_loss, photometric_loss, psnr, psnr_tensor, solid_angle_weight
 from gaussians.mip_filter import DEFAULT_VARIANCE, filter_variance, filtered, reset_cap_logits, sampling_rate
-from gaussians.model import PARAM_NAMES, Gaussians, render
+from gaussians.model import DEFAULT_EPS2D, PARAM_NAMES, Gaussians, render
 from gaussians.optim import Adam, expon_lr
 from gaussians.view_jitter import TurnGrid, random_turn, turn_panorama
 
@@ -90,8 +90,9 @@ class TrainConfig:
     random_turn_tilt_deg: float = 1.0
     #: how the turned ground truth is interpolated: "bilinear" or "bicubic"
     random_turn_interp: str = "bilinear"
-    #: the renderer's screen-space dilation (squared pixels) in training renders
-    eps2d: float = 0.3
+    #: the renderer's screen-space dilation (squared pixels) the model is fitted with; the exported
+    #: model keeps it (Gaussians.eps2d), so every later render uses it too
+    eps2d: float = DEFAULT_EPS2D
     # learning rates (3DGS); the position rates are multiplied by the scene extent
     lr_position_init: float = 1.6e-4
     lr_position_final: float = 1.6e-6
@@ -292,12 +293,12 @@ class Trainer:
         The sampling rates are recomputed from the current centres at every call (Mip-Splatting
         recomputes them every 100 iterations; here it costs little, and a function of the model
         alone keeps a resumed run identical to an uninterrupted one)."""
-        if not self.cfg.mip_filter:
-            return self.g
-        rate = sampling_rate(self.g.means.detach(), [v.viewmat for v in self.views],
-                             [v.camera for v in self.views])
-        return filtered(self.g, filter_variance(rate, self.cfg.mip_filter_variance),
-                        self.cfg.mip_filter_keep_integral)
+        g = self.g
+        if self.cfg.mip_filter:
+            rate = sampling_rate(g.means.detach(), [v.viewmat for v in self.views], [v.camera for v in self.views])
+            g = filtered(g, filter_variance(rate, self.cfg.mip_filter_variance), self.cfg.mip_filter_keep_integral)
+        # drawn with the training dilation, which the exported model keeps (Gaussians.eps2d)
+        return g if g.eps2d == self.cfg.eps2d else replace(g, eps2d=self.cfg.eps2d)
 
     def _coverage_loss(self, g: Gaussians) -> torch.Tensor:
         """mean(1 − alpha) of a coverage_height × 2·coverage_height panorama from a random point of
@@ -373,7 +374,7 @@ class Trainer:
             bg = torch.rand(3, generator=self.gen, dtype=self._bg.dtype).to(self.device)
         drawn = self._drawn()
         out = render(drawn, view.viewmat, view.camera, backend=cfg.backend, background=bg,
-                     sh_degree=self.active_sh, eps2d=cfg.eps2d)
+                     sh_degree=self.active_sh)
         lap("render")
         pred = self._as_trained(view, out.image)
         crops = self._crop_targets(view)

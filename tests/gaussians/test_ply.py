@@ -105,3 +105,29 @@ def test_malformed_files_raise_naming_the_file(tmp_path):
     (tmp_path / "c.ply").write_bytes(hdr + np.zeros(1, "<f4").tobytes())
     with pytest.raises(ValueError, match="missing properties"):
         load_ply(tmp_path / "c.ply")
+
+
+def test_the_training_dilation_round_trips_as_a_comment(tmp_path):
+    """Gaussians.eps2d other than 3DGS's 0.3 is a header comment that load_ply reads back (and that
+    the render defaults to); 0.3 writes no comment; a bad value is an error naming the file."""
+    from gaussians.model import render
+    import splatting
+
+    g = random_gaussians(20)
+    g.eps2d = 0.1
+    path = save_ply(tmp_path / "g.ply", g)
+    assert "comment eps2d 0.1" in _header(path)
+    h = load_ply(path)
+    assert h.eps2d == 0.1 and h.detach().eps2d == 0.1 and h.index(torch.arange(3)).eps2d == 0.1
+    cam, vm = splatting.EquirectCamera(8, 16), torch.eye(4)
+    with torch.no_grad():
+        assert torch.equal(render(h, vm, cam).image, render(h, vm, cam, eps2d=0.1).image)
+        assert not torch.equal(render(h, vm, cam).image, render(h, vm, cam, eps2d=0.3).image)
+    plain = save_ply(tmp_path / "p.ply", random_gaussians(20))
+    assert not any(line.startswith("comment") for line in _header(plain))
+    assert load_ply(plain).eps2d == 0.3
+    for bad in (b"comment eps2d fast\n", b"comment eps2d -1\n", b"comment eps2d nan\n"):
+        raw = plain.read_bytes().replace(b"element vertex", bad + b"element vertex", 1)
+        (tmp_path / "bad.ply").write_bytes(raw)
+        with pytest.raises(ValueError, match="bad.ply.*eps2d"):
+            load_ply(tmp_path / "bad.ply")

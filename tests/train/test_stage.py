@@ -219,3 +219,30 @@ def test_mip_filter_run_resumes_identically(tiny_room, tmp_path, monkeypatch):
     out = T.run(ctx_for(tiny_room, tmp_path / "b", params, resume=True, name="out2"))
     assert out.resumed_from == 7
     assert (tmp_path / "b" / "out2" / out.ply).read_bytes() == (tmp_path / "a" / "out" / ref.ply).read_bytes()
+
+
+def test_training_dilation_travels_with_the_exported_model(tiny_room, tmp_path):
+    """A model fitted with eps2d 0.1 (and random turns) is saved with it (a PLY comment) and loaded
+    with it, so the evaluate stage's renders use it: the loaded model's renders at the training views
+    score the stage's reported training PSNR, and the same Gaussians drawn with 0.3 do not."""
+    from gaussians.losses import psnr
+    from gaussians.model import render
+
+    ctx = ctx_for(tiny_room, tmp_path, {"iterations": 12, "seed": 3, "eps2d": 0.1, "random_turns": True})
+    out = T.run(ctx)
+    assert b"comment eps2d 0.1\n" in (ctx.out_dir / out.ply).read_bytes()[:400]
+    g = load_ply(ctx.out_dir / out.ply)
+    assert g.eps2d == 0.1
+    views = ctx.scene.manifest.train_views()
+    tv = T.build_views(T.load_images(load_scene(tiny_room), views, 16), {v.name: v.viewmat for v in views}, "360")
+
+    def score(**kw):
+        with torch.no_grad():
+            return float(np.mean([psnr(render(g, v.viewmat, v.camera, background=torch.zeros(3), **kw).image,
+                                       v.image) for v in tv]))
+
+    assert score() == pytest.approx(out.final_train_psnr, abs=1e-3)
+    assert abs(score(eps2d=0.3) - out.final_train_psnr) > 0.01
+    # a model at the default dilation is written as a plain 3DGS PLY
+    plain = ctx_for(tiny_room, tmp_path, {"iterations": 2, "seed": 3}, name="plain")
+    assert b"comment eps2d" not in (plain.out_dir / T.run(plain).ply).read_bytes()[:400]
