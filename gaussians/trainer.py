@@ -89,7 +89,7 @@ class TrainConfig:
     #: largest tilt of those turns (degrees; the yaw is free)
     random_turn_tilt_deg: float = 1.0
     #: how the turned ground truth is interpolated: "bilinear" or "bicubic"
-    random_turn_interp: str = "bilinear"
+    random_turn_interp: str = "bicubic"
     #: the renderer's screen-space dilation (squared pixels) the model is fitted with; the exported
     #: model keeps it (Gaussians.eps2d), so every later render uses it too
     eps2d: float = DEFAULT_EPS2D

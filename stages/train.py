@@ -57,9 +57,9 @@ PRESETS: dict[str, dict] = {
 #: controls for sparse captures, measured in docs/training.md ("Sparse captures: 360° against crops");
 #: the perspective baselines keep 3DGS's behaviour.
 PROJECTION_DEFAULTS: dict[str, dict] = {
-    "360": dict(random_background=False, random_turns=False, lr_scale=0.5, mip_filter=False),
-    "crops": dict(random_background=False, random_turns=False, lr_scale=1.0, mip_filter=False),
-    "cubemap": dict(random_background=False, random_turns=False, lr_scale=1.0, mip_filter=False),
+    "360": dict(random_background=False, random_turns=True, eps2d=0.05, lr_scale=0.5, mip_filter=False),
+    "crops": dict(random_background=False, random_turns=False, eps2d=0.3, lr_scale=1.0, mip_filter=False),
+    "cubemap": dict(random_background=False, random_turns=False, eps2d=0.3, lr_scale=1.0, mip_filter=False),
 }
 
 
@@ -110,14 +110,15 @@ class Params(BaseModel):
     random_turns: bool | None = Field(
         default=None, description="360: turn each training panorama's camera by a random rotation every time it "
         "is drawn (free yaw, tilt up to random_turn_tilt_deg), its ground truth resampled to match: the model is "
-        "supervised between the pixel centres, as the crops are. None = the projection's default.")
+        "supervised between the pixel centres, as the crops are. None = the projection's default (on for 360).")
     random_turn_tilt_deg: float = Field(
         default=1.0, ge=0, le=180, description="Largest tilt of those turns (degrees).")
-    eps2d: float = Field(
-        default=0.3, ge=0, description="The renderer's screen-space dilation in training renders (squared pixels; "
-        "every other render uses the standard 0.3). Sparse captures: 0.1 with random_turns (docs/training.md).")
     random_turn_interp: Literal["bilinear", "bicubic"] = Field(
-        default="bilinear", description="Interpolation of the turned ground truth.")
+        default="bicubic", description="Interpolation of the turned ground truth (bicubic blurs it less).")
+    eps2d: float | None = Field(
+        default=None, ge=0, description="The renderer's screen-space dilation (squared pixels) the model is "
+        "fitted with and, saved with it, drawn with. None = the projection's default: 0.05 for 360 (with "
+        "random_turns: a model fitted with 3DGS's 0.3 leaves holes when seen finer), 0.3 for the crops.")
     mip_filter: bool | None = Field(
         default=None, description="Mip-Splatting's 3D smoothing filter: each Gaussian drawn convolved with a 3D "
         "low-pass as wide as the finest training camera's sampling interval at it (no needles thinner than a "
@@ -359,7 +360,7 @@ def make_config(p: Params, num_train_views: int, extent: float, device: str = "c
         lambda_scale=p.lambda_scale, max_anisotropy=p.max_anisotropy, crop_loss=p.crop_loss,
         lambda_coverage=p.lambda_coverage,
         random_turns=bool(p.resolved("random_turns")), random_turn_tilt_deg=p.random_turn_tilt_deg,
-        eps2d=p.eps2d, random_turn_interp=p.random_turn_interp,
+        eps2d=float(p.resolved("eps2d")), random_turn_interp=p.random_turn_interp,
         mip_filter=bool(p.resolved("mip_filter")), mip_filter_variance=p.mip_filter_variance,
         mip_filter_keep_integral=p.mip_filter_keep_integral,
         coverage_height=p.coverage_height or max(4, int(p.resolved("height")) // 2),

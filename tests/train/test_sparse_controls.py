@@ -57,7 +57,7 @@ def test_projection_defaults():
         p = Params(projection=proj)
         cfg = make_config(p, 4, 2.0)
         assert cfg.random_background == defaults["random_background"]
-        assert cfg.random_turns == defaults["random_turns"] and cfg.eps2d == 0.3
+        assert cfg.random_turns == defaults["random_turns"] and cfg.eps2d == defaults["eps2d"]
         # lr_scale multiplies every learning rate
         for name in ("lr_position_init", "lr_position_final", "lr_sh_dc", "lr_sh_rest", "lr_opacity",
                      "lr_scaling", "lr_rotation"):
@@ -65,10 +65,12 @@ def test_projection_defaults():
     assert make_config(Params(lr_scale=1.0), 4, 1.0).lr_opacity == Params().lr_opacity
     assert make_config(Params(projection="360", random_background=True), 4, 1.0).random_background is True
     assert make_config(Params(projection="crops", random_background=True), 4, 1.0).random_background is True
-    sparse = make_config(Params(random_turns=True, random_turn_tilt_deg=5, eps2d=0.1, random_turn_interp="bicubic"),
-                         4, 1.0)
-    assert (sparse.random_turns, sparse.random_turn_tilt_deg, sparse.eps2d, sparse.random_turn_interp) == (
-        True, 5, 0.1, "bicubic")
+    assert (PROJECTION_DEFAULTS["360"]["random_turns"], PROJECTION_DEFAULTS["360"]["eps2d"]) == (True, 0.05)
+    assert (PROJECTION_DEFAULTS["crops"]["random_turns"], PROJECTION_DEFAULTS["crops"]["eps2d"]) == (False, 0.3)
+    cfg = make_config(Params(random_turns=False, random_turn_tilt_deg=5, eps2d=0.1, random_turn_interp="bilinear"),
+                      4, 1.0)
+    assert (cfg.random_turns, cfg.random_turn_tilt_deg, cfg.eps2d, cfg.random_turn_interp) == (
+        False, 5, 0.1, "bilinear")
 
 
 def test_crop_resampler_matches_the_baselines_crops_and_passes_gradients():

@@ -243,6 +243,8 @@ def test_training_dilation_travels_with_the_exported_model(tiny_room, tmp_path):
 
     assert score() == pytest.approx(out.final_train_psnr, abs=1e-3)
     assert abs(score(eps2d=0.3) - out.final_train_psnr) > 0.01
-    # a model at the default dilation is written as a plain 3DGS PLY
-    plain = ctx_for(tiny_room, tmp_path, {"iterations": 2, "seed": 3}, name="plain")
+    # the 360 default is 0.05; a model at 3DGS's 0.3 is written as a plain 3DGS PLY
+    default = ctx_for(tiny_room, tmp_path, {"iterations": 2, "seed": 3}, name="default")
+    assert b"comment eps2d 0.05\n" in (default.out_dir / T.run(default).ply).read_bytes()[:400]
+    plain = ctx_for(tiny_room, tmp_path, {"iterations": 2, "seed": 3, "eps2d": 0.3}, name="plain")
     assert b"comment eps2d" not in (plain.out_dir / T.run(plain).ply).read_bytes()[:400]
