@@ -45,14 +45,16 @@ def random_turn(max_tilt_deg: float, generator: torch.Generator) -> torch.Tensor
 
 class TurnGrid:
     """The unit ray directions of an H×W panorama's pixel centres (DESIGN.md's mapping), kept on
-    the images' device, and the `grid_sample` grid of a turned copy."""
+    the images' device in float32 (a column's fraction is then exact to ~1e-4 pixel at W = 2048),
+    and the `grid_sample` grid of a turned copy."""
 
     def __init__(self, height: int, width: int, device):
         self.height, self.width = int(height), int(width)
         lon = ((torch.arange(width, dtype=torch.float64) + 0.5) / width - 0.5) * 2.0 * math.pi
         lat = (0.5 - (torch.arange(height, dtype=torch.float64) + 0.5) / height) * math.pi
         lat, lon = torch.meshgrid(lat, lon, indexing="ij")
-        self.dirs = torch.stack([lat.cos() * lon.sin(), -lat.sin(), lat.cos() * lon.cos()], -1).to(device)
+        dirs = torch.stack([lat.cos() * lon.sin(), -lat.sin(), lat.cos() * lon.cos()], -1)
+        self.dirs = dirs.to(device=device, dtype=torch.float32)
 
     def grid(self, rotation: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
         """[1,H,W,2] sampling grid into the panorama padded by two wrapped columns on each side:
@@ -60,12 +62,12 @@ class TurnGrid:
         h, w = self.height, self.width
         src = self.dirs @ rotation.to(self.dirs)  # row vectors: (Rᵀ d)ᵀ = dᵀ R
         x, y, z = src.unbind(-1)
-        col = (torch.atan2(x, z) / (2.0 * math.pi) + 0.5) * w - 0.5
-        row = (0.5 - torch.atan2(-y, torch.hypot(x, z)) / math.pi) * h - 0.5
-        mx = torch.remainder(col + 0.5, w) - 0.5 + _PAD
-        my = row.clamp(0.0, h - 1.0)
-        return torch.stack([2.0 * mx / (w - 1 + 2 * _PAD) - 1.0, 2.0 * my / max(h - 1, 1) - 1.0],
-                           -1)[None].to(dtype)
+        # column and row of DESIGN.md's mapping, then the grid's [-1, 1] over the padded image
+        col = torch.atan2(x, z).mul_(w / (2.0 * math.pi)).add_(w / 2.0)  # col + 0.5, in [0, w]
+        gx = torch.remainder(col, w).add_(_PAD - 0.5).mul_(2.0 / (w - 1 + 2 * _PAD)).sub_(1.0)
+        row = torch.atan2(-y, torch.hypot(x, z)).mul_(-h / math.pi).add_(h / 2.0 - 0.5)
+        gy = row.clamp_(0.0, h - 1.0).mul_(2.0 / max(h - 1, 1)).sub_(1.0)
+        return torch.stack([gx, gy], -1)[None].to(dtype)
 
 
 def turn_panorama(image: torch.Tensor, grid: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
