@@ -7,12 +7,14 @@ viewpoint sees (docs/training.md, "Sparse captures"). The perspective crops of t
 not have this freedom: their pixels fall between the panorama's, with the ground truth
 interpolated there.
 
-`turned_view` gives a training panorama a random rotation R of its camera frame each time it is
-drawn: the render looks along R d for the pixel whose direction was d, and the ground truth (and
-mask) are the panorama resampled bilinearly the same way (`panogeom.rotate_equirect`'s
-out(d) = image(Rᵀ d)), periodic across the ±180° seam. R is a free turn about the vertical (a
-fractional pixel of longitude, as any whole-pixel part is an exact column roll) times a tilt of
-at most `max_tilt_deg` about a random horizontal axis, which moves the sampling between rows.
+The trainer (`Trainer._turned`, train parameter `random_turns`) gives a training panorama a
+random rotation R of its camera frame (`random_turn`) each time it is drawn: the render looks
+along R d for the pixel whose direction was d, and the ground truth and mask are the panorama
+resampled the same way (`TurnGrid`, `turn_panorama`: `panogeom.rotate_equirect`'s
+out(d) = image(Rᵀ d), bicubic or bilinear), periodic across the ±180° seam. R is a free turn about
+the vertical (a fractional pixel of longitude, as any whole-pixel part is an exact column roll)
+after a tilt of at most `max_tilt_deg` about a random horizontal axis, which moves the sampling
+between rows.
 """
 
 from __future__ import annotations
