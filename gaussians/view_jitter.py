@@ -21,8 +21,13 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
+from scipy.spatial.transform import Rotation
+
+from panogeom.equirect import ray_directions
+from panogeom.rotate import yaw_matrix
 
 __all__ = ["random_turn", "turn_panorama", "TurnGrid"]
 
@@ -33,16 +38,9 @@ def random_turn(max_tilt_deg: float, generator: torch.Generator) -> torch.Tensor
     """[3,3] float64 rotation: a uniform yaw about +y after a tilt by an angle uniform in
     [0, max_tilt_deg] about a uniformly oriented horizontal axis."""
     yaw, axis_angle, tilt = torch.rand(3, generator=generator, dtype=torch.float64).tolist()
-    yaw *= 2.0 * math.pi
     a = 2.0 * math.pi * axis_angle
-    axis = torch.tensor([math.cos(a), 0.0, math.sin(a)], dtype=torch.float64)
-    t = math.radians(max_tilt_deg) * tilt
-    k = torch.tensor([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]],
-                     dtype=torch.float64)
-    tilt_m = torch.eye(3, dtype=torch.float64) + math.sin(t) * k + (1.0 - math.cos(t)) * (k @ k)
-    c, s = math.cos(yaw), math.sin(yaw)
-    yaw_m = torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], dtype=torch.float64)
-    return yaw_m @ tilt_m
+    tilt_vec = math.radians(max_tilt_deg) * tilt * np.array([math.cos(a), 0.0, math.sin(a)])
+    return torch.from_numpy(yaw_matrix(2.0 * math.pi * yaw) @ Rotation.from_rotvec(tilt_vec).as_matrix())
 
 
 class TurnGrid:
@@ -52,11 +50,7 @@ class TurnGrid:
 
     def __init__(self, height: int, width: int, device):
         self.height, self.width = int(height), int(width)
-        lon = ((torch.arange(width, dtype=torch.float64) + 0.5) / width - 0.5) * 2.0 * math.pi
-        lat = (0.5 - (torch.arange(height, dtype=torch.float64) + 0.5) / height) * math.pi
-        lat, lon = torch.meshgrid(lat, lon, indexing="ij")
-        dirs = torch.stack([lat.cos() * lon.sin(), -lat.sin(), lat.cos() * lon.cos()], -1)
-        self.dirs = dirs.to(device=device, dtype=torch.float32)
+        self.dirs = torch.from_numpy(ray_directions(self.height, self.width)).to(device=device, dtype=torch.float32)
 
     def grid(self, rotation: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
         """[1,H,W,2] sampling grid into the panorama padded by two wrapped columns on each side:
