@@ -4,9 +4,10 @@ Writes OUT/zind_a (pano_18 trains, pano_12 held out) and OUT/zind_b (the other w
 the pair's images and scene.json with one view's split set to "test" and the nadir cap set. With
 --with-layout the training view also gets a supplied layout: the dataset's `joint_visible_layout`
 (the floor polygon both panoramas see, with its `ceiling_height`) ray-cast from the training
-camera into [2,W] boundary latitudes, plus layout_overlay/<view>.png, the boundaries drawn on the
-image, to check by eye that they land on the wall edges. The polygon is only the jointly visible
-floor, so a few of its edges cross open space (beside the kitchen island): a rough layout.
+camera into [2,W] boundary latitudes, plus layout_overlay/<view>.png (the report's layout picture:
+the boundaries on the image and the floor plan) to check by eye that they land on the wall edges.
+The polygon is only the jointly visible floor, so a few of its edges cross open space (beside the
+kitchen island): a rough layout.
 
     PYTHONPATH=$PWD .venv/bin/python scripts/zind_pair_scenes.py /tmp/zind --with-layout
 """
@@ -21,6 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from evaluation.report_sections import plot_layout_view
 from layoutnet.postprocess import polygon_to_boundaries
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "zind_pair"
@@ -35,8 +37,9 @@ def dataset_to_world(xy: np.ndarray) -> np.ndarray:
     return np.stack([xy[:, 0], -xy[:, 1]], axis=1)
 
 
-def training_view_boundaries(view: dict, polygon_xz: np.ndarray, ceiling_height: float) -> np.ndarray:
-    """[2,W] latitudes of the room seen from the view's camera (pose = camera-to-world)."""
+def training_view_room(view: dict, polygon_xz: np.ndarray, ceiling_height: float) -> tuple[np.ndarray, np.ndarray]:
+    """The room seen from the view's camera (pose = camera-to-world): [2,W] boundary latitudes and
+    the floor polygon in the camera frame (x, z)."""
     pose = np.asarray(view["pose"], dtype=np.float64)
     rotation, centre = pose[:3, :3], pose[:3, 3]
     world = np.stack([polygon_xz[:, 0], np.full(len(polygon_xz), centre[1]), polygon_xz[:, 1]], axis=1)
@@ -45,18 +48,7 @@ def training_view_boundaries(view: dict, polygon_xz: np.ndarray, ceiling_height:
     bounds = polygon_to_boundaries(camera[:, [0, 2]], height, ceiling_height - height, BOUNDARY_WIDTH)
     if not np.all(np.isfinite(bounds)):
         raise SystemExit(f"{view['name']}: the camera is outside joint_visible_layout")
-    return bounds
-
-
-def draw_boundaries(image_path: Path, bounds: np.ndarray, out: Path) -> None:
-    image = cv2.imread(str(image_path))
-    h, w = image.shape[:2]
-    cols = (np.arange(bounds.shape[1]) + 0.5) / bounds.shape[1] * w - 0.5
-    for row, colour in ((bounds[0], (0, 0, 255)), (bounds[1], (0, 255, 0))):
-        for x, y in zip(cols, (0.5 - row / np.pi) * h - 0.5):
-            cv2.circle(image, (int(round(x)), int(round(y))), 3, colour, -1)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(out), cv2.resize(image, (w // 2, h // 2), interpolation=cv2.INTER_AREA))
+    return bounds, camera[:, [0, 2]]
 
 
 def make_scene(out: Path, name: str, nadir_mask_deg: float, with_layout: bool) -> None:
@@ -69,11 +61,16 @@ def make_scene(out: Path, name: str, nadir_mask_deg: float, with_layout: bool) -
     for view in scene["views"]:
         view["split"] = "test" if view["name"] == HELD_OUT[name] else "train"
         if with_layout and view["split"] == "train":
-            bounds = training_view_boundaries(view, polygon, float(annotation["ceiling_height"]))
+            ceiling_height = float(annotation["ceiling_height"])
+            bounds, room = training_view_room(view, polygon, ceiling_height)
             (folder / "layout").mkdir(exist_ok=True)
             np.save(folder / "layout" / f"{view['name']}.npy", bounds)
             view["layout"] = f"layout/{view['name']}.npy"
-            draw_boundaries(folder / view["image"], bounds, folder / "layout_overlay" / f"{view['name']}.png")
+            (folder / "layout_overlay").mkdir(exist_ok=True)
+            image = cv2.cvtColor(cv2.imread(str(folder / view["image"])), cv2.COLOR_BGR2RGB) / 255.0
+            height = float(view["camera_height"])
+            plot_layout_view(image, bounds, room, height, ceiling_height - height,
+                             f"{view['name']}: joint_visible_layout", folder / "layout_overlay" / f"{view['name']}.png")
     (folder / "scene.json").write_text(json.dumps(scene, indent=1))
     print(f"wrote {folder} ({HELD_OUT[name]} held out{', layout supplied' if with_layout else ''})")
 

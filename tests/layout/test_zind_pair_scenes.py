@@ -40,9 +40,9 @@ def test_dataset_frame_maps_pano2_onto_its_pose():
 def test_supplied_layout_holds_the_held_out_camera(tmp_path):
     """Each direction's scene loads with its layout; the training view's floor boundary, looking
     towards the held-out camera (3.59 camera heights away), reaches a wall beyond it."""
-    _script().make_scene(tmp_path, "zind_a", 35.0, with_layout=True)
-    _script().make_scene(tmp_path, "zind_b", 35.0, with_layout=True)
+    script = _script()
     for name, train, test in (("zind_a", "pano_18", "pano_12"), ("zind_b", "pano_12", "pano_18")):
+        script.make_scene(tmp_path, name, 35.0, with_layout=True)
         scene = load_scene(tmp_path / name)
         splits = {v.name: v.split for v in scene.views}
         assert splits == {train: "train", test: "test"}
