@@ -446,7 +446,7 @@ def clean(scene: SceneArg, out: OutOpt = None) -> None:
 @app.command()
 def schema(out: Annotated[Path, typer.Argument(help="Folder to write the JSON Schemas into.")]) -> None:
     """Write the JSON Schema of scene.json and of every stage artifact."""
-    from schemas import all_schemas
+    from pipeline.registry import all_schemas
 
     out.mkdir(parents=True, exist_ok=True)
     for name, model in all_schemas().items():

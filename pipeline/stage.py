@@ -12,8 +12,7 @@ and pipeline/registry.py wires it into the DAG.
 
 from __future__ import annotations
 
-import hashlib
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Generic, TypeVar
@@ -25,9 +24,6 @@ from schemas.scene import Scene, View
 P = TypeVar("P", bound=BaseModel)
 D = TypeVar("D", bound=BaseModel)
 
-#: Kinds of scene files a stage may read; only those enter its cache key.
-SCENE_INPUTS = ("images", "layout", "depth", "gt")
-
 
 @dataclass(frozen=True)
 class StageSpec:
@@ -38,6 +34,8 @@ class StageSpec:
     #: upstream stage -> required? A skipped required input skips this stage;
     #: a skipped optional input reaches `run` as None.
     inputs: dict[str, bool] = field(default_factory=dict)
+    #: Kinds of scene files the stage reads (images, layout, depth, masks, gt; see the engine's
+    #: _KIND_FIELDS): only those enter its cache key.
     scene_inputs: tuple[str, ...] = ("images",)
     #: The views whose manifest entries and files the stage reads (None = all): a changed test
     #: image must not retrain the model.
@@ -52,9 +50,6 @@ class StageSpec:
     #: One line for `status` and the run header when the scene lacks something the user can get
     #: (the command that gets it); None when nothing is missing.
     hint: Callable[[Scene, BaseModel], str | None] | None = None
-    #: Source the stage depends on (its module plus libraries like splatting/);
-    #: their content hash is the stage's code version.
-    code: tuple[str, ...] = ()
     description: str = ""
     #: For a stage whose artifact fills in what the scene left out (poses): (scene, its artifact) ->
     #: the completed scene. Every stage downstream of it runs on the completed scene.
@@ -63,27 +58,10 @@ class StageSpec:
     resources: Callable[[BaseModel], dict[str, float]] = field(default=lambda params: {"CPU": 1.0})
 
     def code_version(self) -> str:
-        h = hashlib.sha256()
-        for path in sorted(_source_files(self.code)):
-            h.update(path.name.encode())
-            h.update(path.read_bytes())
-        return h.hexdigest()[:16]
+        """The hash of the repository sources the stage's module imports (pipeline/code_closure.py)."""
+        from pipeline.code_closure import code_version
 
-
-def _source_files(modules: Iterable[str]) -> Iterator[Path]:
-    import importlib.util
-
-    for mod in modules:
-        spec = importlib.util.find_spec(mod)
-        if spec is None or spec.origin is None:
-            continue
-        origin = Path(spec.origin)
-        if origin.name == "__init__.py":  # a package: every source file in it
-            for p in origin.parent.rglob("*"):
-                if p.suffix in {".py", ".cpp", ".cu", ".h"} and "__pycache__" not in p.parts:
-                    yield p
-        else:
-            yield origin
+        return code_version(self.run.__module__)
 
 
 @dataclass
