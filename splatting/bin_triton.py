@@ -5,7 +5,7 @@
 Here the pair list has a preallocated capacity instead, and every shape is known on the
 host before the device runs:
 
-1. the Gaussians are ordered by distance (one ``sort``);
+1. the Gaussians are ordered by their depth keys (splatting.project.depth_key; one ``sort``);
 2. the projection kernel has counted each Gaussian's tiles (splatting/project_triton.py);
    one ``cumsum`` in depth order gives each Gaussian its slice of the pair list;
 3. a kernel writes, per pair, the tile index (the sort key) and the Gaussian;
@@ -29,6 +29,9 @@ import warnings
 
 import torch
 
+from .devices import device_key
+from .project_triton import INTS
+
 try:
     import triton
     import triton.language as tl
@@ -41,7 +44,7 @@ if triton is not None:
     def _emit_pairs(ints, order, offsets, keys, gids, CAP, N, TS, NTX, INTS: tl.constexpr, BLOCK: tl.constexpr):
         """BLOCK Gaussians per program, taken in depth order: each writes its (tile, Gaussian) pairs
         at its slice of the list. ``ints`` rows (splatting/project_triton.py): row0, row1, col0,
-        ncols, tiles covered, radius."""
+        ncols, tiles covered, radius, depth key."""
         i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
         ok = i < N
         g = tl.load(order + i, mask=ok, other=0).to(tl.int32)
@@ -130,14 +133,14 @@ _TILE_IDS: dict = {}
 
 
 def capacity_for(device: torch.device) -> PairCapacity:
-    key = (device.type, device.index)
+    key = device_key(device)
     if key not in _CAPACITIES:
         _CAPACITIES[key] = PairCapacity(device=device)
     return _CAPACITIES[key]
 
 
 def _tile_ids(ntiles, device):
-    key = (ntiles, str(device))
+    key = (ntiles, device_key(device))
     if key not in _TILE_IDS:
         if len(_TILE_IDS) >= 16:
             _TILE_IDS.clear()
@@ -148,15 +151,15 @@ def _tile_ids(ntiles, device):
 def emit_launch(ints, order, offsets, keys, gids, CAP, ts, ntx, n):
     """(kernel, grid, args, options) of the pair writer, for the launch and the compile check."""
     return (_emit_pairs, (triton.cdiv(n, EMIT_BLOCK),), (ints, order, offsets, keys, gids, CAP, n, ts, ntx),
-            dict(INTS=6, BLOCK=EMIT_BLOCK, num_warps=4))
+            dict(INTS=INTS, BLOCK=EMIT_BLOCK, num_warps=4))
 
 
 EMIT_BLOCK = 128
 
 
-def bin_gaussians(ints: torch.Tensor, dist: torch.Tensor, H: int, W: int, ts: int, capacity: PairCapacity = None):
-    """Tile lists from the projection kernel's integer rows ``ints`` [N, INTS] (box, tiles covered)
-    and the distances: offsets [ntiles+1] int32, Gaussian indices [capacity] int32 (front to
+def bin_gaussians(ints: torch.Tensor, H: int, W: int, ts: int, capacity: PairCapacity = None):
+    """Tile lists from the projection kernel's integer rows ``ints`` [N, INTS] (box, tiles covered,
+    depth key): offsets [ntiles+1] int32, Gaussian indices [capacity] int32 (front to
     back within each tile, ties in index order, the lists of ``bin_gaussians_torch``) and the
     pair count (a device scalar). Nine device operations; no host sync once the capacity is sized."""
     device = ints.device
@@ -168,7 +171,7 @@ def bin_gaussians(ints: torch.Tensor, dist: torch.Tensor, H: int, W: int, ts: in
     ntx, nty = (W + ts - 1) // ts, (H + ts - 1) // ts
     ntiles = ntx * nty
     n = ints.shape[0]
-    order = torch.sort(dist.detach(), stable=True).indices
+    order = torch.sort(ints[:, 6], stable=True).indices
     offsets = torch.cumsum(ints[:, 4][order], 0, dtype=torch.int32)
     if n and not capturing and cap.needs_sizing(n):
         cap.size(n, int(offsets[-1]))  # the one host sync: first render, or after the scene grew

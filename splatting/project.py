@@ -32,6 +32,14 @@ ALPHA_MAX = 0.99
 T_MIN = 1e-4
 TAU_MAX = 4.5  # = ½·3², the 3σ cap of the opacity-aware radius
 C_MIN = 1e-6  # n·d below this counts as "behind the tangent plane" (guards the 1/c)
+# Front-to-back order: the distance's float32 bit pattern rounded to DEPTH_KEY_BITS mantissa bits
+# (a relative step of 2⁻¹³, 0.6 mm at 5 m), ties in index order. Every backend computes the
+# distance with its own rounding; at equal true distances (points on a sphere around the
+# camera, a plane seen head-on) a last-bit difference would otherwise order the Gaussians
+# differently per backend and change the image. Rounding (not truncating) puts the key's
+# boundaries between round numbers, where exact ties sit.
+DEPTH_KEY_BITS = 13
+DEPTH_KEY_SHIFT = 23 - DEPTH_KEY_BITS
 
 
 @dataclass
@@ -42,6 +50,13 @@ class Projection:
     radii: torch.Tensor  # [N] int32, pixels
     bbox: torch.Tensor  # [Nv, 4] int32: row0, row1 (inclusive), col0, ncols (cols wrap mod W)
     means2d: torch.Tensor  # [N, 2] leaf (see render.py)
+
+
+def depth_key(dist: torch.Tensor) -> torch.Tensor:
+    """int32 sort key of positive distances (see ``DEPTH_KEY_BITS``); the same rule as the
+    ``cuda`` projection kernel and the C++ ``depth_order``."""
+    bits = dist.detach().to(torch.float32).contiguous().view(torch.int32)
+    return (bits + (1 << (DEPTH_KEY_SHIFT - 1))) >> DEPTH_KEY_SHIFT
 
 
 def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:

@@ -26,7 +26,7 @@ import math
 import torch
 
 from .cameras import EquirectCamera
-from .project import ALPHA_MIN, PACK, TAU_MAX, project
+from .project import ALPHA_MIN, DEPTH_KEY_SHIFT, PACK, TAU_MAX, project
 
 try:
     import triton
@@ -35,7 +35,7 @@ except ImportError:  # raster_triton reports it
     triton = None
 
 ANGLE_MARGIN = 2e-6  # radians added to every angular bound of the box (covers the atan2 polynomial)
-INTS = 6  # int32 columns per Gaussian: box (row0, row1, col0, ncols), tiles covered, radius
+INTS = 7  # int32 columns per Gaussian: box (row0, row1, col0, ncols), tiles covered, radius, depth key
 
 if triton is not None:
     _PI = tl.constexpr(math.pi)
@@ -47,8 +47,16 @@ if triton is not None:
     _ANGLE_MARGIN = tl.constexpr(ANGLE_MARGIN)
     _PACKW = tl.constexpr(PACK)
     _INTS = tl.constexpr(INTS)
+    _DEPTH_KEY_SHIFT = tl.constexpr(DEPTH_KEY_SHIFT)
+    _DEPTH_KEY_HALF = tl.constexpr(1 << (DEPTH_KEY_SHIFT - 1))
     _SH_C0 = tl.constexpr(0.28209479177387814)
     _SH_C1 = tl.constexpr(0.4886025119029199)
+
+    @triton.jit
+    def _depth_key(dist):
+        """splatting.project.depth_key: float32 bits rounded to DEPTH_KEY_BITS mantissa bits."""
+        bits = dist.to(tl.float32).to(tl.int32, bitcast=True)
+        return (bits + _DEPTH_KEY_HALF) >> _DEPTH_KEY_SHIFT
 
     @triton.jit
     def _atan2(y, x):
@@ -327,6 +335,7 @@ if triton is not None:
         tl.store(ib + 3, nci, mask=ok_i)
         tl.store(ib + 4, tl.where(valid, ntr * ntc, 0), mask=ok_i)
         tl.store(ib + 5, tl.where(valid, tl.ceil(radius), 0.0).to(tl.int32), mask=ok_i)
+        tl.store(ib + 6, _depth_key(dist), mask=ok_i)
         tl.store(visible + i, valid, mask=ok_i)
         tl.store(m2d + i * 2, m2x.to(m2d.dtype.element_ty), mask=ok_i)
         tl.store(m2d + i * 2 + 1, m2y.to(m2d.dtype.element_ty), mask=ok_i)

@@ -44,6 +44,8 @@ from pathlib import Path
 
 import torch
 
+from .project import DEPTH_KEY_SHIFT
+
 try:
     import fcntl
 except ImportError:  # pragma: no cover - not POSIX: no inter-process lock, publishing stays atomic
@@ -53,7 +55,8 @@ _SRC = Path(__file__).parent / "csrc" / "splat_cpu.cpp"
 # -march: this machine's instruction set by default; $PANO_PIPE_MARCH names another (e.g.
 # x86-64-v3 for a build shared by machines with and without AVX-512)
 _MARCH = os.environ.get("PANO_PIPE_MARCH", "native")
-_CFLAGS = ["-O3", "-fopenmp", f"-march={_MARCH}", "-fno-math-errno"]
+# the depth order's key is defined once, in splatting/project.py
+_CFLAGS = ["-O3", "-fopenmp", f"-march={_MARCH}", "-fno-math-errno", f"-DDEPTH_KEY_SHIFT={DEPTH_KEY_SHIFT}"]
 _LDFLAGS = ["-fopenmp"]
 _LIB_EXT = ".pyd" if sys.platform == "win32" else ".so"  # what cpp_extension names the library
 _WAIT_ENV = "PANO_PIPE_BUILD_WAIT"

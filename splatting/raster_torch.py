@@ -10,14 +10,14 @@ from __future__ import annotations
 
 import torch
 
-from .project import ALPHA_MAX, C_MIN, T_MIN
+from .project import ALPHA_MAX, C_MIN, T_MIN, depth_key
 
 BATCH_ELEMS = 1 << 21  # pair evaluations held at once
 
 
 def bin_gaussians_torch(bbox: torch.Tensor, dist: torch.Tensor, H: int, W: int, ts: int):
     """Tile lists: (offsets [ntiles+1] int64, list [npairs] int64 of Gaussian indices,
-    sorted front to back by ``dist`` within each tile)."""
+    front to back within each tile: by ``depth_key(dist)``, ties in index order)."""
     device = bbox.device
     ntx, nty = (W + ts - 1) // ts, (H + ts - 1) // ts
     ntiles = ntx * nty
@@ -43,7 +43,7 @@ def bin_gaussians_torch(bbox: torch.Tensor, dist: torch.Tensor, H: int, W: int, 
     tc = (tc0[gid] + local % ntc[gid]) % ntx
     tile = tr * ntx + tc
     rank = torch.empty(nv, dtype=torch.long, device=device)
-    rank[torch.argsort(dist, stable=True)] = torch.arange(nv, device=device)
+    rank[torch.argsort(depth_key(dist), stable=True)] = torch.arange(nv, device=device)
     key = tile * nv + rank[gid]
     order = torch.argsort(key)
     tlist = gid[order]

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from .project import ALPHA_MAX, C_MIN, T_MIN, quat_to_rotmat
+from .project import ALPHA_MAX, C_MIN, T_MIN, depth_key, quat_to_rotmat
 
 
 def rasterize_dense(P: torch.Tensor, dirs: torch.Tensor):
@@ -18,7 +18,7 @@ def rasterize_dense(P: torch.Tensor, dirs: torch.Tensor):
     (color [H,W,3], depth [H,W], alpha [H,W]). O(H·W·Nv) memory."""
     H, W, _ = dirs.shape
     d = dirs.reshape(-1, 3)
-    order = torch.argsort(P[:, 18].detach(), stable=True)
+    order = torch.argsort(depth_key(P[:, 18]), stable=True)
     g = P[order]
     c = d @ g[:, 6:9].T  # [Px, Nv]
     h0 = d @ g[:, 0:3].T

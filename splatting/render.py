@@ -10,6 +10,7 @@ from typing import Optional, Union
 import torch
 
 from .cameras import EquirectCamera, PinholeCamera
+from .devices import device_key
 from .project import project
 from .raster_torch import TorchRaster, bin_gaussians_torch
 from .sh import eval_sh, num_sh_bases
@@ -146,7 +147,7 @@ def render(
         packed, ints, visible, means2d = project_gaussians(
             means, quats.to(dtype), scales.to(dtype), opacities.to(dtype), colors, viewmat, camera, eps2d, near,
             sh_degree, ts, _color_fn)
-        toff, tlist, _ = bin_gaussians(ints, packed[:, 18].detach(), H, W, ts)
+        toff, tlist, _ = bin_gaussians(ints, H, W, ts)
         color, depth, alpha = TritonRaster.apply(packed, dirs, toff, tlist, H, W, ts)
         radii = ints[:, 5]
     else:
@@ -172,7 +173,7 @@ _DIRS_CACHE: dict = {}
 def _pixel_dirs(camera, dtype, device):
     """The camera's pixel ray directions, computed once per (camera, dtype, device): a render
     then dispatches no per-frame work for them."""
-    key = (camera, dtype, str(device))
+    key = (camera, dtype, device_key(device))
     dirs = _DIRS_CACHE.get(key)
     if dirs is None:
         if len(_DIRS_CACHE) >= 16:

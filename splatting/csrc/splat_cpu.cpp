@@ -893,19 +893,26 @@ void project_all(const proj::Cam& cam, const T* Rv, const T* tv, const T* means,
   }
 }
 
-// Front-to-back order of the visible Gaussians (distance, column 18 of P): a stable LSD
-// radix sort of the distances' bit patterns (positive floats order like their bits), one
-// byte per pass, skipping bytes all keys share. Ties keep index order, as a sort of
-// (distance, index) pairs would; several times faster than std::sort on 100k keys.
+// Front-to-back order of the visible Gaussians: a stable LSD radix sort of their depth keys
+// (splatting/project.py depth_key: the distance's float32 bit pattern, positive floats order
+// like their bits, rounded to DEPTH_KEY_SHIFT fewer mantissa bits so that every backend orders
+// equal distances alike), one byte per pass, skipping bytes all keys share. Ties keep index
+// order, as a sort of (key, index) pairs would; several times faster than std::sort on 100k keys.
+#ifndef DEPTH_KEY_SHIFT
+#error "DEPTH_KEY_SHIFT comes from splatting/project.py (raster_cpp passes it)"
+#endif
 template <typename T>
 torch::Tensor depth_order_impl(const T* P, const bool* valid, int64_t N) {
-  using K = typename std::conditional<sizeof(T) == 4, uint32_t, uint64_t>::type;
+  using K = uint32_t;
   constexpr int NB = sizeof(K);  // byte digits
   std::vector<K> key(N), key2;
   std::vector<int64_t> idx(N), idx2;
   int64_t n = 0;
   for (int64_t g = 0; g < N; ++g) {  // branch-free compaction of the visible ones
-    std::memcpy(&key[n], P + g * PACK + 18, sizeof(K));
+    const float dist = (float)P[g * PACK + 18];
+    K bits;
+    std::memcpy(&bits, &dist, sizeof(K));
+    key[n] = (bits + (K(1) << (DEPTH_KEY_SHIFT - 1))) >> DEPTH_KEY_SHIFT;
     idx[n] = g;
     n += valid[g];
   }

@@ -95,3 +95,21 @@ def hard_case_scene(kind, dtype):
 HARD_KINDS = ["north_pole", "south_pole", "seam", "at_camera", "far", "far_small", "tiny", "huge", "mixed_scales",
               "disc_face_on", "disc_edge_on", "disc_oblique", "zero_quat", "unnormalised_quat", "tiny_quat",
               "opacity_zero", "opacity_one", "beyond_hemisphere", "just_past_near"]
+
+
+def equal_distance_cluster(seed, phi=math.pi, n=10, radius=2.0, dtype=torch.float32):
+    """issue 35's case: n Gaussians at exactly ``radius`` from the camera (the same distance to
+    the last bit of their true value), spread ±0.2 rad about longitude ``phi`` (π: straddling
+    the ±180° seam) and ±1 rad in latitude. Which one is in front is a tie that every backend
+    must break alike (splatting.project.depth_key)."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    lon = phi + rng.uniform(-0.2, 0.2, n)
+    lat = rng.uniform(-1, 1, n)
+    means = np.stack([np.cos(lat) * np.sin(lon), -np.sin(lat), np.cos(lat) * np.cos(lon)], 1) * radius
+    quats = rng.normal(size=(n, 4))
+    scales = np.exp(rng.uniform(np.log(0.05), np.log(0.4), (n, 3)))
+    ops = rng.uniform(0.2, 0.95, n)
+    cols = rng.uniform(0, 1, (n, 3))
+    return [torch.tensor(a, dtype=dtype) for a in (means, quats, scales, ops, cols)]

@@ -94,10 +94,10 @@ def test_backward_never_syncs_and_its_op_count_ignores_visibility(monkeypatch):
 
 
 def test_a_training_step_never_waits_for_the_device(tmp_path, monkeypatch):
-    """Trainer.step with the `cuda` backend, between densifications: no operation that needs a
-    host sync but the CPU-only read of the finite flag (on a GPU the trainer does not read it),
-    and the same operations at every step. The losses take the path they take on a GPU (the
-    compiled CPU SSIM is for CPU tensors only)."""
+    """Trainer.step with the `cuda` backend on DEVICE, between densifications: no operation that
+    needs a host sync but, on CPU tensors, the read of the finite flag (free there; on a GPU the
+    trainer does not read it), and the same operations at every step. The losses take the path
+    they take on a GPU (the compiled CPU SSIM is for CPU tensors only)."""
     from gaussians import losses
 
     monkeypatch.setattr(losses, "_cpu_kernels", lambda x: None)
@@ -113,7 +113,7 @@ def test_a_training_step_never_waits_for_the_device(tmp_path, monkeypatch):
     root = tiny_scene(tmp_path / "room")
     g = random_points(60, 0, rooms=rooms(root))
     cfg = small_config(iterations=10, extent=scene_extent(g.means), backend="cuda", densify_from=100,
-                       densify_until=100, log_every=100, sh_degree_every=0)
+                       densify_until=100, log_every=100, sh_degree_every=0, device=str(DEVICE))
     tr = Trainer(g, load_views(root), cfg)
     tr.part_seconds = None  # no timing laps (they synchronise on a GPU by design)
     tr.step()  # sizes the pair list: the one sync of a run between densifications
@@ -122,7 +122,8 @@ def test_a_training_step_never_waits_for_the_device(tmp_path, monkeypatch):
         with DispatchCounter() as counter:
             tr.step()
         counts.append(counter)
-    assert all(dict(c.sync_ops) == {"_local_scalar_dense": 1} for c in counts), [c.summary() for c in counts]
+    expected = {} if DEVICE.type == "cuda" else {"_local_scalar_dense": 1}
+    assert all(dict(c.sync_ops) == expected for c in counts), [c.summary() for c in counts]
     assert counts[0].ops == counts[1].ops and counts[0].kernels == counts[1].kernels
 
 
@@ -213,3 +214,19 @@ def test_memory_formula_matches_allocations():
     assert abs(forward_peak - expected) <= 0.03 * expected, (forward_peak, expected)
     expected_step = gpu_memory.training_step_bytes(n, h, 2 * h, capacity)
     assert abs(tracker.peak - expected_step) <= 0.15 * expected_step, (tracker.peak, expected_step)
+
+
+def test_per_device_caches_take_one_key_per_gpu(monkeypatch):
+    """On a GPU, tensors live on ``cuda:0`` while callers (and these tests) name ``cuda``: the
+    pair capacity, tile ids and pixel directions must be one cache entry for both, or a reserved
+    capacity is never read and every render rebuilds its directions (issue 35, seen on an H100
+    only). Keys are checked here without a GPU, with the current device faked."""
+    from splatting.devices import device_key
+
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: 0)
+    assert device_key("cuda") == device_key(torch.device("cuda", 0)) == ("cuda", 0)
+    assert device_key(torch.device("cuda", 1)) == ("cuda", 1)
+    assert device_key("cpu") == device_key(torch.device("cpu")) == ("cpu", None)
+    monkeypatch.setattr(bin_triton, "_CAPACITIES", {})
+    monkeypatch.setattr(bin_triton, "PairCapacity", lambda device: object())  # no pinned memory without CUDA
+    assert bin_triton.capacity_for(torch.device("cuda")) is bin_triton.capacity_for(torch.device("cuda", 0))

@@ -15,7 +15,8 @@ pytest.importorskip("triton")
 
 import splatting  # noqa: E402
 from splatting import raster_triton  # noqa: E402
-from splat_helpers import HARD_KINDS, dir_from_angles, eye, hard_case_scene, random_scene, yaw_matrix  # noqa: E402
+from splat_helpers import (HARD_KINDS, dir_from_angles, equal_distance_cluster, eye, hard_case_scene,  # noqa: E402
+                           random_scene, yaw_matrix)
 
 pytestmark = pytest.mark.cuda
 DEVICE = torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -124,6 +125,22 @@ def test_seam_and_poles_scene():
     vm[:3, :3] = torch.tensor([[1.0, 0.0, 0.0], [0.0, math.cos(0.3), -math.sin(0.3)],
                                [0.0, math.sin(0.3), math.cos(0.3)]], dtype=torch.float64)
     _compare([means, quats, scales, ops, cols], vm, camera=splatting.EquirectCamera(32, 64))
+
+
+@pytest.mark.parametrize("hw", [(24, 48), (64, 128)])
+@pytest.mark.parametrize("phi", [math.pi, 0.0], ids=["seam", "front"])
+@pytest.mark.parametrize("seed", range(4))
+def test_gaussians_at_one_distance_across_the_seam(seed, phi, hw):
+    """issue 35: ten Gaussians at one distance straddling ±180° (and the same straight ahead);
+    image and every gradient as `cpp`, in float32 as training renders them."""
+    _compare(equal_distance_cluster(seed, phi), eye(torch.float32), camera=splatting.EquirectCamera(*hw), eps2d=0.0)
+
+
+@pytest.mark.skipif(DEVICE.type == "cpu", reason="about a minute in the interpreter; the kernels and cases of "
+                    "test_gaussians_at_one_distance_across_the_seam, on a larger image")
+@pytest.mark.parametrize("seed", range(4))
+def test_gaussians_at_one_distance_across_the_seam_full_size(seed):
+    _compare(equal_distance_cluster(seed), eye(torch.float32), camera=splatting.EquirectCamera(512, 1024), eps2d=0.0)
 
 
 @pytest.mark.parametrize("kind", HARD_KINDS)
