@@ -280,16 +280,17 @@ def check_run_request(engine, target: str | None, until: str | None) -> None:
 
 def run_header(engine) -> str:
     """One line before a run: what is run, on what, where to."""
-    import torch
+    from stages.train import resolve_device
 
     views = engine.scene.views
     n_train = sum(v.split == "train" for v in views)
     train = engine.params_for("train")
     height = train.resolved("height")
-    device = "cuda" if torch.cuda.is_available() else "cpu"
+    device = resolve_device(train.device, "train.device")
+    backend = f" ({train.backend} backend)" if train.backend else ""
     return escape(f"scene {engine.scene.name}: {len(views)} views ({n_train} train, {len(views) - n_train} test); "
                   f"training at {height}x{2 * height}, preset {train.preset}, "
-                  f"device {device} (training runs on the CPU); output {engine.out_dir}")
+                  f"on {device}{backend}; output {engine.out_dir}")
 
 
 def print_run_summary(engine, scene_arg: Path, finished: list[str], flags: str = "",

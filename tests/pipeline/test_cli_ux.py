@@ -105,6 +105,10 @@ def test_run_prints_a_header_and_a_summary_with_per_view_metrics(run, capsys):
     assert code == 0 and without_kernel_notices(err) == ""
     first = out.splitlines()[0]
     assert first.startswith("scene S: 5 views (3 train, 2 test); training at 8x16") and str(run / "R") in out
+    import torch
+
+    # the device training really runs on (issue 35: a GPU machine read "cuda (training runs on the CPU)")
+    assert f"on {'cuda' if torch.cuda.is_available() else 'cpu'};" in first and "runs on the CPU" not in first
     assert "model: " in out and "point_cloud.ply" in out and "Gaussians" in out
     assert "test_00" in out and "test_01" in out and "mean" in out  # one row per test view
     assert f"pano-pipe report {run / 'S'} --out {run / 'R'}" in " ".join(out.split())
