@@ -6,6 +6,9 @@ BIN := .venv/bin
 STAMP := .venv/.installed
 DEMO_SCENE := scenes/demo
 TORCH := torch==2.13.0
+# auto: the CUDA build of torch where nvidia-smi lists a GPU, the CPU build elsewhere (scripts/install_torch.sh)
+TORCH_BUILD ?= auto
+export TORCH_BUILD
 # Debian packages: open3d needs libusb and libgomp; the report test uses chromium.
 APT_REQUIRED := libusb-1.0-0 libgomp1
 APT_OPTIONAL := chromium
@@ -18,9 +21,10 @@ $(STAMP): pyproject.toml
 	@$(MAKE) --no-print-directory system-deps
 	@test -x $(PY) || python3 -m venv .venv
 	$(PIP) install -q --upgrade pip
-	@# torch first and pinned: the CPU build, so no resolver pulls CUDA wheels.
-	$(PIP) install -q $(TORCH)
-	$(PIP) install -q -e ".[test]"
+	@# torch first and pinned, CPU or CUDA build by what the machine has (TORCH_BUILD=auto|cpu|cuda)
+	TORCH="$(TORCH)" PIP=$(PIP) PY=$(PY) scripts/install_torch.sh
+	@# the CPU build's triton is the one CI runs the GPU kernels with in its interpreter; a CUDA build brings its own
+	$(PIP) install -q -e ".[test$$(grep -qx cpu .venv/.torch-build && echo ,interpreter)]"
 	@# LPIPS's linear heads ship in the lpips wheel; --no-deps: its torchvision would replace our torch.
 	$(PIP) install -q --no-deps lpips==0.1.4
 	@touch $(STAMP)
