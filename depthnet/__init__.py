@@ -1,23 +1,10 @@
 """ONNX depth networks for the depth stage: the model contract, the runner and the cube-face path.
 
-    from depthnet import DepthContract, OnnxDepthModel, run_equirect, run_cubemap
+    from depthnet.cubemap import run_cubemap
+    from depthnet.runner import DepthContract, OnnxDepthModel, run_equirect
     contract = DepthContract(output="disparity", normalization="imagenet", multiple_of=14)
     model = OnnxDepthModel("da.onnx", contract)
     disparity = run_equirect(model, rgb, (256, 512))
 
-See docs/depth.md.
+See docs/depth.md. The package imports nothing, so the CLI lists its commands without OpenCV.
 """
-
-from depthnet.cubemap import FACE_NAMES, run_cubemap, sample_face, stitch
-from depthnet.runner import DepthContract, OnnxDepthModel, resize_map, run_equirect
-
-__all__ = [
-    "FACE_NAMES",
-    "DepthContract",
-    "OnnxDepthModel",
-    "resize_map",
-    "run_cubemap",
-    "run_equirect",
-    "sample_face",
-    "stitch",
-]

@@ -14,9 +14,9 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from pipeline import signals  # noqa: E402
 
-# pycolmap takes SIGTERM when imported (glog); imported now, before torch and OpenCV start threads,
-# a signal meanwhile waits for our handler (pipeline/signals.py)
-signals.load_native_early()
+# before anything else loads: libraries imported from here on (pycolmap takes SIGTERM, numpy and
+# OpenCV start threads) load with SIGINT/SIGTERM held back (pipeline/signals.py)
+signals.guard_imports()
 
 import json  # noqa: E402
 import shutil

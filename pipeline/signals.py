@@ -3,13 +3,15 @@
 A native library may install its own C-level signal handlers when it is imported: pycolmap
 (COLMAP's glog `InstallFailureSignalHandler`) takes SIGTERM, so a `kill` then printed glog's
 35-line stack dump, exited 143 and left `.tmp-*` folders behind. Python still *reports* its own
-handler (`signal.getsignal`) but the kernel calls glog's. `install()` sets our handler and adds
-an import hook that holds SIGINT/SIGTERM back (the main thread's signal mask) while each
-top-level module from a file loads and re-installs Python's handlers after it, so a library
-imported in the middle of a command (every command builds the stage registry, which imports
-pycolmap) cannot take them, and a signal sent mid-import is handled by ours once the import ends.
-The cost: two `sigprocmask` and one `sigaction` per handled signal, once per newly imported
-package.
+handler (`signal.getsignal`) but the kernel calls glog's. `guard_imports()`, called by the CLI
+before it imports anything else, adds an import hook that holds SIGINT/SIGTERM back (the main
+thread's signal mask) while each top-level module from a file loads and re-installs Python's
+handlers after it, so a library imported in the middle of a command (pycolmap, when the poses
+stage runs structure from motion) cannot take them, and a signal sent mid-import is handled by
+ours once the import ends. Native worker threads that an import starts (OpenBLAS with numpy,
+OpenCV's pool) inherit the held-back mask, so no thread but the main one takes the signal while
+a later import holds it back. `install()` sets our SIGTERM handler. The cost: two `sigprocmask`
+and one `sigaction` per handled signal, once per newly imported package.
 """
 
 from __future__ import annotations
@@ -105,27 +107,13 @@ class _RestoreAfterImport(importlib.abc.MetaPathFinder):
 
 _hook = _RestoreAfterImport()
 
-#: Native packages known to install C-level handlers for SIGTERM when imported (glog's failure
-#: handler, in pycolmap's module init).
-TAKES_SIGTERM = ("pycolmap",)
 
-
-def load_native_early() -> None:
-    """Import the packages of TAKES_SIGTERM now, with the handled signals held back, and put the
-    handlers back. Called first thing by the CLI, while the main thread is the only thread: a
-    signal held back here stays pending until the handlers are ours again. Imported later, after
-    torch and OpenCV have started their worker threads (which do not hold the signals back), a
-    SIGTERM during the import could reach glog's handler through one of those threads."""
-    if threading.current_thread() is not threading.main_thread():
-        return
-    for name in TAKES_SIGTERM:
-        if name in sys.modules:
-            continue
-        with _handlers_kept():
-            try:
-                __import__(name)
-            except ImportError:
-                pass  # not installed: the command that needs it says so
+def guard_imports() -> None:
+    """Hold the handled signals back during every later top-level import (see the module
+    docstring). Called first thing by the CLI, so that the threads native libraries start while
+    they load never take SIGTERM. A no-op outside the main thread."""
+    if threading.current_thread() is threading.main_thread() and _hook not in sys.meta_path:
+        sys.meta_path.insert(0, _hook)
 
 
 def install() -> None:
@@ -134,5 +122,4 @@ def install() -> None:
     if threading.current_thread() is not threading.main_thread():
         return
     signal.signal(signal.SIGTERM, on_sigterm)
-    if _hook not in sys.meta_path:
-        sys.meta_path.insert(0, _hook)
+    guard_imports()

@@ -17,63 +17,15 @@ from __future__ import annotations
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
 
 import cv2
 import numpy as np
 import pycolmap
 
+from runfs.fsutil import native_write
+from sfm.records import Panorama, Reconstruction, SfmOptions
 from sfm.rig import VirtualRig
-
-Method = Literal["rig", "equirect"]
-METHODS: tuple[Method, ...] = ("rig", "equirect")
-
-
-@dataclass
-class Panorama:
-    """One input: a name, its RGB pixels [H,W,3] uint8 at the working size, and where they may
-    be used ([H,W] bool, or None for everywhere)."""
-
-    name: str
-    rgb: np.ndarray
-    valid: np.ndarray | None = None
-
-
-@dataclass
-class SfmOptions:
-    method: Method = "equirect"
-    max_features: int = 4096
-    #: Verified two-view matches needed for an image pair to count (COLMAP's default 15).
-    min_matches: int = 15
-    #: SIFT's contrast threshold; below COLMAP's 0.0067: indoor walls are low-contrast
-    peak_threshold: float = 0.004
-    threads: int = -1
-    seed: int = 0
-
-
-@dataclass
-class Reconstruction:
-    """What SfM found, in its own frame."""
-
-    #: view name -> camera-from-world 4x4 (OpenCV axes), only for registered views
-    cam_from_world: dict[str, np.ndarray]
-    #: view name -> mean reprojection error (pixels of the working panorama) and observations
-    reprojection_error: dict[str, float]
-    observations: dict[str, int]
-    points: np.ndarray  # [N,3]
-    colors: np.ndarray  # [N,3] uint8
-    #: [N] number of distinct panoramas observing each point
-    track_length: np.ndarray
-    #: image pairs with verified matches (virtual views of a rig counted per panorama pair)
-    verified_pairs: int
-    models: int = 1
-    timings: dict[str, float] = field(default_factory=dict)
-
-
-#: The steps `reconstruct` reports to its `progress` callback as each one ends.
-STEPS = ("views", "features", "matching", "mapping")
 
 
 def quiet_colmap() -> None:
@@ -152,8 +104,7 @@ def _empty(verified_pairs: int, timings: dict[str, float]) -> Reconstruction:
 
 def _write_png(path: Path, image: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), image):
-        raise OSError(f"{path}: could not write image")
+    native_write(path, lambda: cv2.imwrite(str(path), image), "image")
 
 
 class _Feed(ABC):

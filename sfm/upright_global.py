@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from sfm.reconstruct import Panorama, Reconstruction
+from sfm.records import Panorama, Reconstruction
 from sfm.rig import rotation_about_y
 from sfm.upright_pair import (PairResult, UprightPairOptions, bearing_color, two_nearest, descriptor_distance, features,
                               pose_from_features)

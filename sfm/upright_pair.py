@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from panogeom.equirect import angles_to_pixel, dirs_to_angles
-from sfm.reconstruct import Panorama, Reconstruction
+from sfm.records import Panorama, Reconstruction
 from sfm.rig import VirtualRig, rotation_about_y
 
 

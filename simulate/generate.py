@@ -8,7 +8,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from runfs.fsutil import atomic_folder  # a leaf module: no pipeline machinery comes along
@@ -133,6 +132,8 @@ def is_simulated_scene(folder: Path) -> bool:
 def _write_scene(
     tmp: Path, *, name, world, boxes, cams, height, fx, aa_samples, rngs, with_layout, with_depth, timings
 ) -> None:
+    import cv2  # here, not at the top: `pano-pipe --help` lists the simulate command without OpenCV
+
     for sub in ("images", "gt/depth", "gt/layout"):
         (tmp / sub).mkdir(parents=True, exist_ok=True)
     if "tripod" in fx or "exposure" in fx:

@@ -33,8 +33,8 @@ from pipeline.stage import Loaded, StageContext
 from schemas.poses import Attempt, PairRecord, PosesOutput, UprightPairReport, ViewPose
 from schemas.scene import Scene
 from sfm.frame import Alignment, align_to_floor, align_to_known
-from sfm.reconstruct import STEPS as SFM_STEPS
-from sfm.reconstruct import Panorama, Reconstruction, SfmOptions, reconstruct
+from sfm.records import STEPS as SFM_STEPS
+from sfm.records import Panorama, Reconstruction, SfmOptions
 from sfm.upright_global import GlobalResult, UprightGlobalOptions
 from sfm.upright_global import solve as solve_upright
 from sfm.upright_pair import PairResult, relative_pose
@@ -347,6 +347,8 @@ def _empty(verified_pairs: int) -> Reconstruction:
 
 
 def _colmap(panoramas: list[Panorama], p: Params, method: str) -> Reconstruction:
+    from sfm.reconstruct import reconstruct  # pycolmap: loaded only where structure from motion runs
+
     options = SfmOptions(method=method, max_features=p.max_features, min_matches=p.min_matches,
                          threads=p.threads or -1, seed=p.seed)
     with make_progress() as bar, tempfile.TemporaryDirectory(prefix="colmap-") as work:

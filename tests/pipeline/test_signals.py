@@ -1,7 +1,8 @@
 """SIGTERM to every long command, as a scheduler or `kill` sends it (docs/security.md, Signals).
 
-Each command runs as a real process; the signal is sent once its long part has started and the
-native libraries that take SIGTERM (pycolmap's glog) are loaded. Promised: exit code 130, one line
+Each command runs as a real process; the signal is sent once its long part has started and, for
+the poses stage, once the native library that takes SIGTERM (pycolmap's glog) is loaded: only
+structure from motion loads it (issue 35), mid-command. Promised: exit code 130, one line
 on stderr, no temporary file or folder left, the run log recording `interrupted`.
 Hardening issue 2 (second pass): pycolmap's glog replaced our handler, so these died with 143
 and a 35-line stack dump, leaving `.tmp-*` folders.
@@ -57,11 +58,11 @@ def _catches_sigterm(pid: int) -> bool:
     return bool(masks.get("SigCgt:", 0) & bit) and not masks.get("SigBlk:", 0) & bit
 
 
-def terminate_when(args: list, ready, cwd: Path, timeout: float = 240.0, settle: float = 0.0
-                   ) -> tuple[int, str, str]:
-    """Run `pano-pipe ARGS`; once `ready(stdout so far, pid)` holds, pycolmap is loaded and the
-    process handles SIGTERM (and `settle` seconds later), send SIGTERM. Returns (exit code,
-    stdout, stderr)."""
+def terminate_when(args: list, ready, cwd: Path, timeout: float = 240.0, settle: float = 0.0,
+                   loads_pycolmap: bool = False) -> tuple[int, str, str]:
+    """Run `pano-pipe ARGS`; once `ready(stdout so far, pid)` holds, the process handles SIGTERM
+    and, with `loads_pycolmap`, pycolmap is loaded (and `settle` seconds later), send SIGTERM.
+    Returns (exit code, stdout, stderr)."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1", "COLUMNS": "200"}
     proc = subprocess.Popen([sys.executable, "-c", "from pipeline.cli import main; main()", *map(str, args)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd, env=env)
@@ -70,7 +71,8 @@ def terminate_when(args: list, ready, cwd: Path, timeout: float = 240.0, settle:
     reader.start()
     deadline = time.monotonic() + timeout
     try:
-        while not (ready("".join(out), proc.pid) and "pycolmap" in _maps(proc.pid) and _catches_sigterm(proc.pid)):
+        while not (ready("".join(out), proc.pid) and (not loads_pycolmap or "pycolmap" in _maps(proc.pid))
+                   and _catches_sigterm(proc.pid)):
             assert proc.poll() is None, f"finished before the signal: {proc.returncode}\n{''.join(out)}" \
                                         f"\n{proc.stderr.read()}"
             assert time.monotonic() < deadline, "the long part never started"
@@ -102,8 +104,10 @@ def last_event(run: Path, stage: str) -> str:
     return [r["event"] for r in records if r["stage"] == stage][-1]
 
 
-def test_sigterm_during_poses(tmp_path):
-    """`run poses`: structure from motion in pycolmap, which installs glog's handler on import."""
+@pytest.mark.parametrize("method", ["auto", "equirect"])
+def test_sigterm_during_poses(tmp_path, method):
+    """`run poses`: the upright solver (auto places every view with it), and structure from motion
+    in pycolmap, which installs glog's handler when the stage imports it, mid-command."""
     from sfm.bench import unposed_copy
 
     sim = tmp_path / "sim"
@@ -111,7 +115,8 @@ def test_sigterm_during_poses(tmp_path):
     scene = tmp_path / "scene"
     unposed_copy(sim, scene)
     run = tmp_path / "run"
-    code, out, err = terminate_when(["run", "poses", scene, "--out", run], lambda o, _: "▶ poses" in o, tmp_path)
+    code, out, err = terminate_when(["run", "poses", scene, "--out", run, "--set", f"poses.method={method}"],
+                                    lambda o, _: "▶ poses" in o, tmp_path, loads_pycolmap=method == "equirect")
     assert_interrupted(code, out, err, run)
     assert last_event(run, "poses") == "interrupted"
     assert not (run / "poses").exists()
