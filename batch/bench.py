@@ -21,6 +21,7 @@ def bench_batch(scenes: int, height: int, iterations: int, executors: list[str],
                 num_cpus: int | None = None, log=print) -> dict:
     from batch.executors import make_executor
     from batch.scheduler import run_batch
+    from pipeline.engine import read_meta
     from simulate.generate import generate_scene
 
     cpus = num_cpus or os.cpu_count() or 1
@@ -45,8 +46,8 @@ def bench_batch(scenes: int, height: int, iterations: int, executors: list[str],
             failed = [r.error for r in results if r.failed]
             if failed:
                 raise RuntimeError(f"bench batch: {name}: {failed[0]}")
-            keys[name] = {(r.name, s): json.loads((r.out_dir / s / "artifact.json").read_text())["meta"]["key"]
-                          for r in results for s in r.stages if (r.out_dir / s / "artifact.json").is_file()}
+            keys[name] = {(r.name, s): meta.key for r in results for s in r.stages
+                          if (meta := read_meta(r.out_dir / s)) is not None}
             stage_s = sum(o.duration_s for r in results for o in r.stages.values())
             rows.append({"executor": name, "wall_s": round(wall, 2), "stage_seconds": round(stage_s, 2),
                          "scenes_per_hour": round(3600 * scenes / wall, 1)})

@@ -53,14 +53,10 @@ class SceneResult:
 
 def test_psnr(out_dir: Path | None) -> float | None:
     """The evaluate stage's mean test PSNR, if the run folder has one."""
-    if out_dir is None:
-        return None
-    try:
-        data = json.loads((out_dir / "evaluate" / "artifact.json").read_text())["data"]
-        value = data["mean"]["psnr"]
-        return float(value) if isinstance(value, int | float) else None
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
+    from pipeline.engine import read_output
+
+    evaluate = read_output(out_dir, "evaluate") if out_dir is not None else None
+    return evaluate.mean.get("psnr") if evaluate is not None else None
 
 
 def run_batch(scene_dirs: list[Path], out_root: Path, config: dict, config_source: str, executor: Executor,

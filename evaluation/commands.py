@@ -33,8 +33,8 @@ def _engine(scene: Path, out: Path | None, config: Path | None = None, set_: lis
     return make_engine(scene, out, config, set_)
 
 
-def _print_mean(mean: dict) -> None:
-    shown = ", ".join(f"{k} {v:.4g}" for k, v in mean.items() if isinstance(v, (int, float)))
+def _print_mean(mean: dict[str, float]) -> None:
+    shown = ", ".join(f"{k} {v:.4g}" for k, v in mean.items())
     console.print(f"[bold]test metrics:[/] {shown}")
 
 
@@ -42,7 +42,8 @@ def report_command(scene: SceneArg, out: OutOpt = None, config: ConfigOpt = None
     """Write the HTML report (self-contained) and its Markdown twin for a run folder.
 
     --config/--set only matter for the "now" column (is each stage current under that configuration)."""
-    from evaluation.report import build_report, read_artifact
+    from evaluation.report import build_report
+    from pipeline.engine import read_output
 
     engine = _engine(scene, out, config, set_)
     run_dir = engine.out_dir
@@ -53,9 +54,9 @@ def report_command(scene: SceneArg, out: OutOpt = None, config: ConfigOpt = None
     except PanoError:
         states = None  # a broken config must not stop a report of what exists
     paths = build_report(run_dir, engine.completed_scene(), states=states)
-    ev = read_artifact(run_dir, "evaluate")
+    ev = read_output(run_dir, "evaluate")
     if ev is not None:
-        _print_mean(ev["data"].get("mean", {}))
+        _print_mean(ev.mean)
     console.print(f"[bold]report:[/] {escape(str(paths.html))}")
     console.print(f"[bold]markdown:[/] {escape(str(paths.markdown))}")
 

@@ -54,16 +54,8 @@ VARIANTS = ablation_variants()
 #: The paper's ablation setting (`ablate --paper`): its preset (512×1024, 7k iterations) and seeds.
 PAPER_SEEDS = 3
 
-# Train-stage parameter names each semantic setting may go by (the first the stage has wins).
-_PARAM_ALIASES = {
-    "init": ("init", "init_mode", "initialisation", "initialization"),
-    "projection": ("projection", "render_mode", "camera_model"),
-    "layout_reg": ("layout_reg", "layout_regularisation", "use_layout_reg"),
-    "seed": ("seed",),
-    "iterations": ("iterations", "iters", "num_iterations"),
-    "resolution": ("resolution", "train_resolution", "height", "train_height"),
-    "max_gaussians": ("max_gaussians", "gaussian_cap", "cap"),
-}
+#: The train-stage parameter of a semantic setting, where the names differ (else the same name).
+TRAIN_PARAM = {"resolution": "height"}
 
 MAIN_STAGES = ("train", "evaluate")
 
@@ -79,8 +71,8 @@ def map_train_overrides(settings: dict, fields: dict | None = None) -> tuple[dic
     fields = train_param_fields() if fields is None else fields
     out, missing = {}, []
     for key, value in settings.items():
-        name = next((n for n in _PARAM_ALIASES.get(key, (key,)) if n in fields), None)
-        if name is None:
+        name = TRAIN_PARAM.get(key, key)
+        if name not in fields:
             missing.append(key)
             continue
         if key == "init" and value == "layout":
@@ -118,6 +110,8 @@ def resolution_value(height: int, field_info) -> object:
 
 def prepare_variant_dir(base_dir: Path, variant_dir: Path, stages: list[str]) -> None:
     """Copy the shared upstream stage folders into a variant folder, replacing stale copies."""
+    from pipeline.engine import read_meta
+
     variant_dir.mkdir(parents=True, exist_ok=True)
     if (base_dir / RUN_MARKER).is_file():  # a run folder of the same scene, made by pano-pipe
         shutil.copyfile(base_dir / RUN_MARKER, variant_dir / RUN_MARKER)
@@ -126,14 +120,10 @@ def prepare_variant_dir(base_dir: Path, variant_dir: Path, stages: list[str]) ->
         if not (src / "artifact.json").is_file():
             continue  # skipped stage
         dst = variant_dir / s
-        if (dst / "artifact.json").is_file():
-            try:
-                if json.loads((dst / "artifact.json").read_text())["meta"]["key"] == json.loads(
-                    (src / "artifact.json").read_text()
-                )["meta"]["key"]:
-                    continue
-            except (OSError, ValueError, KeyError):
-                pass
+        if dst.exists():
+            copied, shared = read_meta(dst), read_meta(src)
+            if copied is not None and shared is not None and copied.key == shared.key:
+                continue
             shutil.rmtree(dst)
         shutil.copytree(src, dst)
 
@@ -168,42 +158,24 @@ def run_variant(scene, base_dir: Path, variant_dir: Path, config: dict) -> dict:
 
 
 def summarise_run(run_dir: Path, results=None) -> dict:
-    from evaluation.report import read_artifact
+    from pipeline.engine import read_output
 
-    ev, tr = read_artifact(run_dir, "evaluate"), read_artifact(run_dir, "train")
+    ev, tr = read_output(run_dir, "evaluate"), read_output(run_dir, "train")
     if ev is None or tr is None:
         raise PanoError(run_dir, "variant run finished without train/evaluate artifacts")
-    mean = ev["data"]["mean"]
+    mean = ev.mean
     ran = {r.name: r.outcome for r in results} if results else {}
     return {
         "dir": str(run_dir),
-        "psnr": mean.get("psnr"),
-        "psnr_colorfit": mean.get("psnr_colorfit"),
-        "ssim": mean.get("ssim"),
-        "ws_psnr": mean.get("ws_psnr"),
-        "lpips": mean.get("lpips"),
-        "depth_abs_rel": mean.get("depth_abs_rel"),
-        "train_seconds": tr["data"].get("train_seconds"),
-        "num_gaussians": tr["data"].get("num_gaussians"),
-        "iterations": tr["data"].get("iterations"),
-        "train_images": tr["data"].get("train_images"),
-        "pixels_per_image": _pixels_per_image(tr["data"]),
-        "fps": ev["data"].get("fps"),
-        "split": ev["data"].get("split"),
-        "eval_resolution": ev["data"].get("resolution"),
-        "stitched": ev["data"].get("stitched"),
-        "train": {k: tr["data"].get(k) for k in ("init", "projection", "layout_reg", "iterations", "resolution",
-                                                  "preset", "appearance")},
+        **{k: mean.get(k) for k in ("psnr", "psnr_colorfit", "ssim", "ws_psnr", "lpips", "depth_abs_rel")},
+        **tr.model_dump(mode="json", include={"train_seconds", "num_gaussians", "iterations", "train_images"}),
+        "pixels_per_image": tr.crops.size ** 2 if tr.crops else tr.resolution[0] * tr.resolution[1],
+        **ev.model_dump(mode="json", include={"fps", "split", "stitched"}),
+        "eval_resolution": list(ev.resolution),
+        "train": tr.model_dump(mode="json", include={"init", "projection", "layout_reg", "iterations", "resolution",
+                                                     "preset", "appearance"}),
         "cached": ran.get("train") == "cached",
     }
-
-
-def _pixels_per_image(train: dict) -> int | None:
-    """Pixels of one training image: a crop (its side squared) or the training panorama."""
-    crops, res = train.get("crops"), train.get("resolution")
-    if crops:
-        return int(crops["size"]) ** 2
-    return int(res[0]) * int(res[1]) if res else None
 
 
 def mean_std(values: list[float]) -> tuple[float, float]:
@@ -628,9 +600,9 @@ def run_sweep(scene, base_dir: Path, base_config: dict, iterations: list[int], h
     out_dir = Path(out_dir) if out_dir is not None else run_path(base_dir, "sweep")
     reg = build_registry()
     fields = train_param_fields()
-    res_name = next((n for n in _PARAM_ALIASES["resolution"] if n in fields), None)
-    if res_name is None:
-        raise PanoError("sweep", f"the train stage has no resolution parameter (looked for {_PARAM_ALIASES['resolution']})")
+    res_name = TRAIN_PARAM["resolution"]
+    if res_name not in fields:
+        raise PanoError("sweep", f"the train stage has no resolution parameter {res_name!r}")
     eh = int(eval_height or max(heights))
     Engine(scene, base_dir, reg, base_config, config_source="config").run(until="align")
     out_dir.mkdir(parents=True, exist_ok=True)

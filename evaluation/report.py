@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from evaluation.report_sections import STAGE_SECTIONS, SectionContext, export_links, settings_section, \
-    settings_without_effect
+from evaluation.report_sections import (STAGE_SECTIONS, SectionContext, export_links, read_artifact,
+                                        settings_section, settings_without_effect)
 from runfs.errors import PanoError
 from runfs.limits import load_npy
 from runfs.paths import run_path
@@ -51,18 +51,9 @@ METRIC_LABELS = {
     "ssim_colorfit": "SSIM colour-fit ↑",
 }
 
-# Key names the train log may use (the first present wins), so the report stays
-# readable if the train stage renames a field.
-LOG_KEYS = {
-    "iteration": ("iteration", "iter", "step", "it"),
-    "loss": ("loss", "total_loss", "loss_total"),
-    "psnr": ("psnr", "train_psnr", "psnr_train"),
-    "num_gaussians": ("num_gaussians", "n_gaussians", "gaussians", "num"),
-    "ema_loss": ("ema_loss",),
-    "ema_psnr": ("ema_psnr",),
-    "test_psnr": ("test_psnr", "eval_psnr", "psnr_test", "val_psnr"),
-    "elapsed": ("elapsed_s", "elapsed", "wall_s", "time_s", "seconds", "elapsed_seconds", "time", "wall_time"),
-}
+#: The train log's columns the report draws: its name -> the key gaussians/trainer.py writes.
+LOG_KEYS = {"iteration": "iteration", "loss": "loss", "psnr": "psnr", "num_gaussians": "num_gaussians",
+            "ema_loss": "ema_loss", "ema_psnr": "ema_psnr", "elapsed": "seconds"}
 
 
 @dataclass
@@ -78,13 +69,6 @@ class ReportPaths:
 
 
 # ----------------------------------------------------------------------------- reading the run
-
-
-def read_artifact(run_dir: Path, stage: str) -> dict | None:
-    try:
-        return json.loads((run_dir / stage / "artifact.json").read_text())
-    except (OSError, ValueError):
-        return None
 
 
 def read_jsonl(path: Path) -> list[dict]:
@@ -109,11 +93,11 @@ def read_jsonl(path: Path) -> list[dict]:
 def training_series(records: list[dict]) -> dict[str, np.ndarray]:
     """Columns of the train log under canonical names; a column is NaN where a record lacks it."""
     out: dict[str, np.ndarray] = {}
-    for canon, keys in LOG_KEYS.items():
+    for canon, key in LOG_KEYS.items():
         col = []
         found = False
         for r in records:
-            v = next((r[k] for k in keys if k in r and isinstance(r[k], (int, float))), None)
+            v = r.get(key) if isinstance(r.get(key), int | float) else None  # null: a non-finite value
             found |= v is not None
             col.append(float(v) if v is not None else math.nan)
         if found:
@@ -167,11 +151,10 @@ def plot_training_curves(series: dict[str, np.ndarray], path: Path, final_test: 
                          ) -> list[str]:
     """The main training chart, large: loss (top) and PSNR (bottom) against iteration.
 
-    PSNR shows the training PSNR (raw faint, running mean solid when logged), the test PSNR the log
-    records periodically (`test_psnr` and its aliases) when it does, and `final_test` = (iteration,
-    PSNR, label) — the evaluate stage's mean — as a star. Returns the legend labels drawn (empty:
-    nothing to draw, no file written)."""
-    if "loss" not in series and "psnr" not in series and "test_psnr" not in series:
+    PSNR shows the training PSNR (raw faint, running mean solid when logged) and `final_test` =
+    (iteration, PSNR, label) — the evaluate stage's mean — as a star. Returns the legend labels
+    drawn (empty: nothing to draw, no file written)."""
+    if "loss" not in series and "psnr" not in series:
         return []
     plt = _plt()
     fig, (ax_l, ax_p) = plt.subplots(2, 1, figsize=(11, 8), sharex=True)
@@ -199,12 +182,7 @@ def plot_training_curves(series: dict[str, np.ndarray], path: Path, final_test: 
             ax.set_yscale("log")
 
     line(ax_l, "loss", "C0", "training loss")
-    tp = series.get("test_psnr")
     line(ax_p, "psnr", "C1", "training PSNR")
-    if tp is not None and np.isfinite(tp).any():
-        ok = np.isfinite(x) & np.isfinite(tp)
-        ax_p.plot(x[ok], tp[ok], "o-", color="C3", lw=1.8, ms=5, label="test PSNR (periodic)")
-        labels.append("test PSNR (periodic)")
     if final_test is not None and math.isfinite(final_test[1]):
         ax_p.plot([final_test[0]], [final_test[1]], "*", color="C3", ms=16, markeredgecolor="k",
                   label=final_test[2])
@@ -823,11 +801,8 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
         if labels:
             sections.append("training")
             doc.images([(curves, "loss and PSNR against iteration")], "training")
-            if "test_psnr" not in series:
-                doc.p("The training log records no periodic test evaluation: test PSNR is measured only at "
-                      "the end, by the evaluate stage (the star)." if final_test else
-                      "The training log records no periodic test evaluation, and there is no evaluation yet: "
-                      "the chart shows training PSNR only.", "note")
+            doc.p("Test PSNR is measured only at the end, by the evaluate stage (the star)." if final_test else
+                  "There is no evaluation yet: the chart shows training PSNR only.", "note")
             extra = img_dir / "training_extra.png"
             if plot_training_extra(series, extra):
                 doc.images([(extra, "# Gaussians against iteration; loss and PSNR against wall time")], "training")

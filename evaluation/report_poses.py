@@ -7,7 +7,6 @@ out with the reason. Kept apart from evaluation/report.py, which calls `add_pose
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -59,13 +58,12 @@ def plot_pair_graph(data: dict, path: Path) -> bool:
 def add_poses_section(doc, run_dir: Path) -> bool:
     """Append the poses section to the report `doc` (evaluation.report's _Doc); False (nothing
     added) when the run has no poses artifact, i.e. every pose came from scene.json."""
-    path = Path(run_dir) / "poses" / "artifact.json"
-    if not path.is_file():
+    from evaluation.report_sections import read_artifact
+
+    art = read_artifact(run_dir, "poses")
+    if art is None:
         return False
-    try:
-        data = json.loads(path.read_text())["data"]
-    except (OSError, ValueError, KeyError):
-        return False
+    data = art["data"]
     views = data.get("views", [])
     placed = sum(bool(v.get("registered")) for v in views)
     doc.h(2, "Poses", "poses")

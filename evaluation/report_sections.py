@@ -32,12 +32,16 @@ class SectionContext:
     img_dir: Path
 
 
-def _artifact(run_dir: Path, stage: str) -> dict | None:
-    try:
-        art = json.loads((Path(run_dir) / stage / "artifact.json").read_text())
-    except (OSError, ValueError):
+def read_artifact(run_dir: Path, stage: str) -> dict | None:
+    """A stage's artifact ({"meta", "data"}) as plain values for the report's tables, validated by
+    the one typed reader (pipeline.engine.read_artifact); None when the stage wrote none."""
+    from pipeline.engine import read_artifact as read_typed
+    from pipeline.registry import build_registry
+
+    if stage not in build_registry():  # a stage of an older version, named in the run log
         return None
-    return art if isinstance(art, dict) and isinstance(art.get("data"), dict) else None
+    art = read_typed(run_dir, stage)
+    return None if art is None else art.model_dump()
 
 
 def stage_file(run_dir: Path, stage: str, name) -> Path | None:
@@ -123,7 +127,7 @@ def plot_layout_view(image: np.ndarray, boundaries: np.ndarray, polygon: np.ndar
 def layout_section(doc, ctx: SectionContext) -> str | None:
     """The layout stage's room on each training panorama: the ceiling and floor boundaries drawn on
     the image, and the floor plan it makes in that view's camera frame."""
-    art = _artifact(ctx.run_dir, "layout")
+    art = read_artifact(ctx.run_dir, "layout")
     if art is None:
         return None
     views = [v for v in art["data"].get("views", [])
@@ -177,7 +181,7 @@ def layout_section(doc, ctx: SectionContext) -> str | None:
 def depth_alignment_section(doc, ctx: SectionContext) -> str | None:
     """How the align stage scaled the depth to the layout: the scale (and shift), the share of
     labelled pixels that agree with the layout, the residual, ICP's refinement, per fit group."""
-    art = _artifact(ctx.run_dir, "align")
+    art = read_artifact(ctx.run_dir, "align")
     if art is None:
         return None
     d = art["data"]
@@ -261,7 +265,7 @@ def settings_without_effect(run_dir: Path, scene=None) -> dict[tuple[str, str], 
     """{(stage, parameter): why it had no effect} for the settings of this run that did nothing,
     from what each stage's artifact records it did (not from what was asked)."""
     out: dict[tuple[str, str], str] = {}
-    tr = _artifact(run_dir, "train")
+    tr = read_artifact(run_dir, "train")
     if tr is not None:
         p = (tr.get("meta") or {}).get("params") or {}
         td = tr["data"]
@@ -307,7 +311,7 @@ def settings_without_effect(run_dir: Path, scene=None) -> dict[tuple[str, str], 
                 and p.get("opacity_reset_every") is not None:
             out[("train", "opacity_reset_every")] = (f"no opacity reset happened: the first is due at "
                                                      f"iteration {reset}, training stopped at {iterations}")
-    al = _artifact(run_dir, "align")
+    al = read_artifact(run_dir, "align")
     if al is not None:
         p = (al.get("meta") or {}).get("params") or {}
         d = al["data"]
@@ -326,14 +330,14 @@ def settings_without_effect(run_dir: Path, scene=None) -> dict[tuple[str, str], 
                 and not _same(p["affine_fit"], _default("align", "affine_fit")):
             out[("align", "affine_fit")] = ("every depth map is metric: there is no scale and shift per view "
                                             "to fit")
-    dp = _artifact(run_dir, "depth")
+    dp = read_artifact(run_dir, "depth")
     if dp is not None:
         p = (dp.get("meta") or {}).get("params") or {}
         if p.get("projection", "equirect") != "cubemap":
             for k in ("face_size", "face_fov_deg", "perspective_axis"):
                 if k in p and not _same(p[k], _default("depth", k)):
                     out[("depth", k)] = "used by projection 'cubemap' only"
-    ev = _artifact(run_dir, "evaluate")
+    ev = read_artifact(run_dir, "evaluate")
     if ev is not None:
         p = (ev.get("meta") or {}).get("params") or {}
         if not ev["data"].get("lpips_available"):

@@ -48,21 +48,20 @@ RunArg = Annotated[Path, typer.Argument(help="Run folder (holding train/point_cl
 def load_run_model(run: Path):
     """The trained Gaussians of a run folder; every problem a one-line PanoError."""
     from gaussians.ply import load_ply
-    from runfs.errors import read_json
+    from pipeline.engine import read_output
 
     run = Path(run)
     if not run.exists():
         raise PanoError(run, "no such run folder")
     if not run.is_dir():
         raise PanoError(run, "not a folder (expected a run folder holding train/)")
+    train = read_output(run, "train")
     art_path = run / "train" / "artifact.json"
-    if not art_path.is_file():
+    if train is None:
         raise PanoError(art_path, "missing: this run has no trained model (run `pano-pipe run train SCENE` first)")
-    art = read_json(art_path)
-    name = (art.get("data") or {}).get("ply") if isinstance(art, dict) else None
-    if not isinstance(name, str) or not name or Path(name).name != name:
+    if not train.ply or Path(train.ply).name != train.ply:
         raise PanoError(art_path, "data.ply must name the model file inside train/")
-    ply = run / "train" / name
+    ply = run / "train" / train.ply
     if not ply.is_file():
         raise PanoError(ply, "missing (named by train/artifact.json)")
     try:

@@ -18,7 +18,7 @@ def bench_pipeline(
     scene: Path | None, config: dict[str, dict], out_md: Path, out_json: Path, preset: str = "demo"
 ) -> dict:
     """Run the whole pipeline twice on one scene; the second run must run no stage."""
-    from pipeline.engine import Engine
+    from pipeline.engine import Engine, read_meta
     from pipeline.registry import build_registry
     from schemas.scene_loader import load_scene
 
@@ -38,7 +38,7 @@ def bench_pipeline(
             timings.append(time.perf_counter() - t0)
             outcomes.append({r.name: r.outcome for r in results})
         stages = {
-            name: json.loads((run_dir / name / "artifact.json").read_text())["meta"]["duration_s"]
+            name: read_meta(run_dir / name).duration_s
             for name, outcome in outcomes[0].items()
             if outcome == "ran"
         }

@@ -299,37 +299,40 @@ def print_run_summary(engine, scene_arg: Path, finished: list[str], flags: str =
     metrics and the report command (with the flags this run was given)."""
     import shlex
 
+    from pipeline.engine import read_output
+
     out = engine.out_dir
-    if "poses" in (ran or []) and (out / "poses" / "artifact.json").is_file():
+    poses = read_output(out, "poses") if "poses" in (ran or []) else None
+    if poses is not None:
         from stages.poses import summary as poses_summary
 
-        spec = engine.registry["poses"]
-        data = spec.output.model_validate(json.loads((out / "poses" / "artifact.json").read_text())["data"])
-        console.print(escape(poses_summary(data)), soft_wrap=True)
-    if "train" in finished and (out / "train" / "artifact.json").is_file():
-        data = json.loads((out / "train" / "artifact.json").read_text())["data"]
-        psnr = data.get("final_train_psnr")
-        console.print(escape(f"model: {out / 'train' / data['ply']} ({data['num_gaussians']:,} Gaussians, "
-                             f"{data['iterations']} iterations"
-                             + (f", train PSNR {psnr:.2f} dB" if isinstance(psnr, int | float) else "") + ")"),
+        console.print(escape(poses_summary(poses)), soft_wrap=True)
+    train = read_output(out, "train") if "train" in finished else None
+    if train is not None:
+        psnr = train.final_train_psnr
+        console.print(escape(f"model: {out / 'train' / train.ply} ({train.num_gaussians:,} Gaussians, "
+                             f"{train.iterations} iterations"
+                             + (f", train PSNR {psnr:.2f} dB" if psnr is not None else "") + ")"),
                       soft_wrap=True)
-    if "evaluate" in finished and (out / "evaluate" / "artifact.json").is_file():
-        data = json.loads((out / "evaluate" / "artifact.json").read_text())["data"]
-        table = Table(title=f"metrics ({data.get('split', 'test')} views, {data['resolution'][0]}x"
-                            f"{data['resolution'][1]})", title_justify="left")
+    ev = read_output(out, "evaluate") if "evaluate" in finished else None
+    if ev is not None:
+        h, w = ev.resolution
+        table = Table(title=f"metrics ({ev.split} views, {h}x{w})", title_justify="left")
         cols = [c for c in ("psnr", "ws_psnr", "ssim", "lpips", "depth_abs_rel", "depth_rmse")
-                if any(v.get(c) is not None for v in data["views"])]
+                if any(getattr(v, c) is not None for v in ev.views)]
         table.add_column("view")
         for c in cols:
             table.add_column(c, justify="right")
-        for v in data["views"]:
-            table.add_row(escape(v["view"]), *(f"{v[c]:.4g}" if v.get(c) is not None else "—" for c in cols))
-        mean = data.get("mean", {})
-        table.add_row("[bold]mean[/]", *(f"{mean[c]:.4g}" if mean.get(c) is not None else "—" for c in cols))
+        for v in ev.views:
+            table.add_row(escape(v.view), *(_metric(getattr(v, c)) for c in cols))
+        table.add_row("[bold]mean[/]", *(_metric(ev.mean.get(c)) for c in cols))
         console.print(table)
-        console.print(escape(f"render speed: {data['fps']:.1f} FPS at {data['resolution'][0]}x"
-                             f"{data['resolution'][1]}; report: pano-pipe report {shlex.quote(str(scene_arg))}{flags}"),
-                      soft_wrap=True)
+        console.print(escape(f"render speed: {ev.fps:.1f} FPS at {h}x{w}; "
+                             f"report: pano-pipe report {shlex.quote(str(scene_arg))}{flags}"), soft_wrap=True)
+
+
+def _metric(value: float | None) -> str:
+    return "—" if value is None else f"{value:.4g}"
 
 
 def _run_batch(stage: str, scenes: list[Path], out: Path | None, config: Path | None, set_: list[str] | None,

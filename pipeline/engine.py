@@ -94,17 +94,39 @@ def read_meta(stage_dir: Path) -> ArtifactMeta | None:
         return None
 
 
-def load_artifact(stage_dir: Path, output: type[BaseModel]) -> Loaded:
-    path = stage_dir / ARTIFACT
+def _validated(path: Path, output: type[BaseModel]) -> Artifact:
+    """The artifact at `path`, validated against `output`; PanoError naming the file otherwise."""
     try:
-        art = Artifact[output].model_validate_json(path.read_bytes())
+        return Artifact[output].model_validate_json(path.read_bytes())
     except FileNotFoundError:
         raise PanoError(path, "missing; run the stage first") from None
     except OSError as e:
         raise PanoError(path, f"cannot read: {e.strerror or e}") from None
     except ValidationError as e:
         raise describe_validation_error(path, e) from None
-    return Loaded(data=art.data, dir=stage_dir)
+
+
+def load_artifact(stage_dir: Path, output: type[BaseModel]) -> Loaded:
+    art = _validated(stage_dir / ARTIFACT, output)
+    return Loaded(data=art.data, dir=stage_dir, meta=art.meta)
+
+
+def read_artifact(run_dir: Path, stage: str) -> Artifact | None:
+    """The artifact `stage` wrote in `run_dir` (meta and typed data), validated against the stage's
+    Output; None when it wrote none. One that does not validate is bad input (PanoError)."""
+    from pipeline.registry import build_registry
+
+    path = Path(run_dir) / stage / ARTIFACT
+    if not path.exists() and not path.is_symlink():
+        return None
+    return _validated(path, build_registry()[stage].output)
+
+
+def read_output(run_dir: Path, stage: str) -> BaseModel | None:
+    """The typed data (the stage's pydantic Output) of `stage`'s artifact in `run_dir`, validated;
+    None when the stage wrote none. The one way artifacts are read outside the engine."""
+    art = read_artifact(run_dir, stage)
+    return None if art is None else art.data
 
 
 def artifact_problem(stage_dir: Path, output: type[BaseModel]) -> str | None:

@@ -19,6 +19,7 @@ from typing import Any, Generic, TypeVar
 
 from pydantic import BaseModel
 
+from schemas.artifact import ArtifactMeta
 from schemas.scene import Scene, View
 
 P = TypeVar("P", bound=BaseModel)
@@ -66,10 +67,12 @@ class StageSpec:
 
 @dataclass
 class Loaded(Generic[D]):
-    """An upstream artifact: its typed data and the folder its relative paths resolve against."""
+    """An upstream artifact: its typed data, the folder its relative paths resolve against, and
+    its meta (the parameters it was made with; None where a test builds one by hand)."""
 
     data: D
     dir: Path
+    meta: ArtifactMeta | None = None
 
     def path(self, rel: str) -> Path:
         """A file the artifact names: relative, inside the stage's folder, no link on the way."""

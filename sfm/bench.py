@@ -99,7 +99,7 @@ def similarity_errors(recovered: dict[str, np.ndarray], truth: dict[str, np.ndar
 
 def bench_poses(scenes: list[BenchScene], methods: list[str], height: int, seed: int, threads: int | None,
                 out_md: Path, out_json: Path) -> dict:
-    from pipeline.engine import Engine
+    from pipeline.engine import Engine, read_output
     from pipeline.registry import build_registry
     from schemas.scene_loader import load_scene
 
@@ -124,15 +124,15 @@ def bench_poses(scenes: list[BenchScene], methods: list[str], height: int, seed:
                 row = {"scene": bench.label, "views": bench.views, "method": method, "seconds": seconds,
                        "cpu_seconds": cpu, "failure": failure}
                 if failure is None:
-                    data = json.loads((run_dir / "poses" / "artifact.json").read_text())["data"]
-                    posed = {v["view"]: np.asarray(v["pose"]) for v in data["views"] if v["registered"]}
+                    data = read_output(run_dir, "poses")
+                    posed = {v.view: np.asarray(v.pose) for v in data.views if v.registered}
                     errors, scale = similarity_errors(posed, truth)
                     row.update(
-                        used=data["method"], registered=len(posed), points=data["points"],
-                        residual_deg=data.get("residual_deg"),
+                        used=data.method, registered=len(posed), points=data.points,
+                        residual_deg=data.residual_deg,
                         max_position_cm=100 * max(e[0] for e in errors.values()),
                         max_rotation_deg=max(e[1] for e in errors.values()),
-                        scale_error_pct=100 * abs(1.0 / scale - 1.0), timings_s=data.get("timings_s", {}))
+                        scale_error_pct=100 * abs(1.0 / scale - 1.0), timings_s=data.timings_s)
                 rows.append(row)
                 console.print(escape(f"{bench.label}, {method}: " + (failure or (
                     f"{row['registered']}/{bench.views} placed by {row['used']}, {row['max_position_cm']:.2f} cm, "

@@ -446,9 +446,12 @@ def projection_launch(means, quats, scales, opac, colors, viewmat, camvec, packe
 
 
 class TritonProject(torch.autograd.Function):
-    """Forward: the projection kernel. Backward: the torch reference (splatting.project.project)
-    recomputed under autograd on every row, with the kernel's visibility, fed the packed rows'
-    gradient."""
+    """Forward: the projection kernel. Backward: its gradient kernel
+    (splatting/project_triton_backward.py); ``REFERENCE_BACKWARD`` swaps in the torch reference
+    (splatting.project.project recomputed under autograd on every row, with the kernel's
+    visibility), which the tests compare the kernel with."""
+
+    REFERENCE_BACKWARD = False
 
     @staticmethod
     def forward(ctx, means, quats, scales, opac, colors, viewmat, means2d, camera, eps2d, near, sh_degree, ts,
@@ -477,15 +480,28 @@ class TritonProject(torch.autograd.Function):
     def backward(ctx, g_packed, _g_ints, _g_visible):
         means, quats, scales, opac, colors, viewmat, visible = ctx.saved_tensors
         camera, eps2d, near, sh_degree, color_fn_factory = ctx.setup
-        inputs = [t.detach().requires_grad_(True) for t in (means, quats, scales, opac, colors, viewmat)]
-        with torch.enable_grad():
-            m, q, s, o, c, v = inputs
-            # every row, the kernel's visibility given: no compaction, so no nonzero and no host sync
-            # (the rows it did not bin get a zero gradient from the rasteriser)
-            proj = project(m, q, s, o, color_fn_factory(c, sh_degree, m.shape[0]), v, camera, eps2d, near,
-                           keep=visible)
-            grads = torch.autograd.grad(proj.packed, inputs + [proj.means2d], g_packed, allow_unused=True)
+        if TritonProject.REFERENCE_BACKWARD:
+            grads = _reference_backward(means, quats, scales, opac, colors, viewmat, visible, g_packed, camera, eps2d,
+                                        near, sh_degree, color_fn_factory)
+        else:
+            from .project_triton_backward import project_backward
+
+            grads = project_backward(means, quats, scales, colors, viewmat, visible, g_packed, camera, eps2d, near,
+                                     sh_degree)
         return (*grads, None, None, None, None, None, None)
+
+
+def _reference_backward(means, quats, scales, opac, colors, viewmat, visible, g_packed, camera, eps2d, near, sh_degree,
+                        color_fn_factory):
+    """The projection's gradient by autograd through the torch reference: every row, the kernel's
+    visibility given (no compaction, so no nonzero and no host sync; the rows it did not bin get
+    a zero gradient from the rasteriser). Grads in the order of project_backward's."""
+    inputs = [t.detach().requires_grad_(True) for t in (means, quats, scales, opac, colors, viewmat)]
+    with torch.enable_grad():
+        m, q, s, o, c, v = inputs
+        proj = project(m, q, s, o, color_fn_factory(c, sh_degree, m.shape[0]), v, camera, eps2d, near, keep=visible)
+        grads = torch.autograd.grad(proj.packed, inputs + [proj.means2d], g_packed, allow_unused=True)
+    return [torch.zeros_like(x) if g is None else g for x, g in zip(inputs + [proj.means2d], grads)]
 
 
 def project_gaussians(means, quats, scales, opacities, colors, viewmat, camera, eps2d, near, sh_degree, ts,

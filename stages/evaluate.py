@@ -29,7 +29,7 @@ from panogeom.images import read_rgb, write_rgb
 from runfs.errors import PanoError
 from runfs.limits import load_npy, read_image
 from schemas.scene_loader import valid_mask
-from pipeline.stage import StageContext
+from pipeline.stage import Loaded, StageContext
 from schemas.evaluate import EvaluateOutput, ViewMetrics
 from schemas.scene import Scene, View
 
@@ -190,15 +190,10 @@ def render_seconds(render_once, device: str) -> float:
     return start.elapsed_time(end) / 1000.0
 
 
-def train_background(train_dir: Path) -> tuple[float, float, float] | None:
+def train_background(train: Loaded) -> tuple[float, float, float] | None:
     """The background the model was trained against (train artifact's meta.params), if recorded."""
-    import json
-
-    try:
-        bg = json.loads((train_dir / "artifact.json").read_text())["meta"]["params"].get("background")
-        return tuple(float(x) for x in bg) if bg is not None and len(bg) == 3 else None
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        return None
+    bg = train.meta.params.get("background") if train.meta is not None else None
+    return tuple(float(x) for x in bg) if isinstance(bg, list) and len(bg) == 3 else None
 
 
 # ----------------------------------------------------------------------------- stage
@@ -215,7 +210,7 @@ def run(ctx: StageContext) -> EvaluateOutput:
         split = "train"
         ctx.warn("the scene has no test views: evaluating on the TRAINING views (a fit, not generalisation)")
 
-    background = p.background if p.background is not None else train_background(train.dir)
+    background = p.background if p.background is not None else train_background(train)
     from stages.train import resolve_device
 
     device = resolve_device(p.device, "evaluate.device")  # cuda without CUDA: a one-line input error

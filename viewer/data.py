@@ -107,15 +107,15 @@ def splats_from_model(g) -> Splats:
 def floor_plan_segments(run_dir: Path) -> np.ndarray | None:
     """The union stage's rooms as line segments [M,2,3]: outline (and holes) at the floor and the
     ceiling, plus the vertical corners. None when the union stage has not run (or was skipped)."""
-    path = Path(run_dir) / "union" / "artifact.json"
-    try:
-        rooms = json.loads(path.read_text())["data"]["rooms"]
-    except (OSError, ValueError, KeyError, TypeError):
+    from pipeline.engine import read_output
+
+    union = read_output(run_dir, "union")
+    if union is None:
         return None
     segs = []
-    for room in rooms:
-        fy, cy = float(room["floor_y"]), float(room["ceiling_y"])
-        for ring in [room["polygon"], *room.get("holes", [])]:
+    for room in union.rooms:
+        fy, cy = room.floor_y, room.ceiling_y
+        for ring in [room.polygon, *room.holes]:
             xz = np.asarray(ring, dtype=np.float64).reshape(-1, 2)
             if len(xz) < 2:
                 continue

@@ -70,7 +70,7 @@ def write_train_artifact(run_dir: Path, g, resolution=(32, 64), log_records=None
     if log_records is None:
         log_records = [
             {"iteration": i, "loss": 0.5 / i, "psnr": 10 + 3 * math.log(i), "num_gaussians": 100 + i,
-             "elapsed_s": 0.1 * i}
+             "seconds": 0.1 * i}
             for i in range(1, 51)
         ]
     (d / "train_log.jsonl").write_text("".join(json.dumps(r) + "\n" for r in log_records))

@@ -67,9 +67,9 @@ def test_report_has_every_section(report):
            "test panoramas rendered directly." in md
 
 
-def test_training_series_tolerates_key_names():
-    recs = [{"iter": 1, "total_loss": 0.5, "train_psnr": 12.0, "elapsed": 0.1},
-            {"iter": 2, "total_loss": 0.4, "n_gaussians": 10, "elapsed": 0.2}]
+def test_training_series_reads_the_columns_the_trainer_writes():
+    recs = [{"iteration": 1, "loss": 0.5, "psnr": 12.0, "seconds": 0.1},
+            {"iteration": 2, "loss": 0.4, "psnr": None, "num_gaussians": 10, "seconds": 0.2}]
     s = training_series(recs)
     assert s["iteration"].tolist() == [1, 2] and s["loss"].tolist() == [0.5, 0.4]
     assert np.isnan(s["psnr"][1]) and np.isnan(s["num_gaussians"][0])
@@ -193,17 +193,15 @@ def test_floor_plan_labels_every_camera(report, sim_scene, tmp_path):
     assert plot_floor_plan(None, tmp_path / "q.png") == [] and not (tmp_path / "q.png").exists()
 
 
-def test_training_chart_test_psnr(report, tmp_path):
+def test_training_chart(report, tmp_path):
     md = report.markdown.read_text()
-    assert "test PSNR is measured only at the end" in md
+    assert "Test PSNR is measured only at the end" in md
     assert "img/training_curves.png" in md
     shape = cv2.imread(str(report.folder / "img" / "training_curves.png")).shape
     assert shape[1] >= 1000  # big enough to read
-    # a log with periodic test evaluations: plotted as their own line, no "only at the end"
-    recs = [{"iteration": i, "loss": 1.0 / i, "psnr": 10.0 + i, **({"test_psnr": 9.0 + i} if i % 5 == 0 else {})}
-            for i in range(1, 21)]
+    recs = [{"iteration": i, "loss": 1.0 / i, "psnr": 10.0 + i} for i in range(1, 21)]
     labels = plot_training_curves(training_series(recs), tmp_path / "c.png", (20.0, 28.0, "final test"))
-    assert "test PSNR (periodic)" in labels and "final test" in labels and "training loss" in labels
+    assert "final test" in labels and "training loss" in labels
     assert plot_training_curves({}, tmp_path / "none.png") == []
 
 

@@ -183,3 +183,41 @@ def test_cpu_tensors_without_interpreter_are_refused(monkeypatch):
     params = random_scene(5, seed=14)
     with pytest.raises(ValueError, match="TRITON_INTERPRET=1"):
         splatting.render(*params, eye(), splatting.EquirectCamera(8, 16), backend="cuda")
+
+
+def _projection_grads(params, viewmat, camera, reference, monkeypatch):
+    """Every input's gradient (and means2d's) through the `cuda` backend, with the projection's
+    gradient from its kernel or from autograd through the torch reference."""
+    from splatting.project_triton import TritonProject
+
+    monkeypatch.setattr(TritonProject, "REFERENCE_BACKWARD", reference)
+    _, grads = _run(params, viewmat, "cuda", DEVICE, camera=camera)
+    return grads
+
+
+@pytest.mark.parametrize("colours", ["rgb", "sh1", "sh3"])
+@pytest.mark.parametrize("camera", [splatting.EquirectCamera(16, 32), splatting.PinholeCamera(12.0, 12.0, 10.0, 8.0, 20, 16)],
+                         ids=["equirect", "pinhole"])
+def test_projection_gradient_kernel_is_the_reference(colours, camera, monkeypatch):
+    """issue 35: the projection's backward as one kernel (splatting/project_triton_backward.py)
+    gives autograd's gradients through splatting.project to rounding, SH colours included (their
+    coefficients and, through the view direction, the means and the view matrix)."""
+    means, quats, scales, ops, rgb = random_scene(60, seed=2)
+    gen = torch.Generator().manual_seed(4)
+    cols = {"rgb": rgb, "sh1": torch.randn(60, 4, 3, generator=gen, dtype=torch.float64) * 0.3,
+            "sh3": torch.randn(60, 16, 3, generator=gen, dtype=torch.float64) * 0.3}[colours]
+    params = [means, quats, scales, ops, cols]
+    kernel = _projection_grads(params, _view(torch.float64), camera, False, monkeypatch)
+    reference = _projection_grads(params, _view(torch.float64), camera, True, monkeypatch)
+    for name, a, r in zip(("means", "quats", "scales", "opacities", "colors", "viewmat"), kernel, reference):
+        assert float((a - r).abs().max()) <= 1e-9 * float(r.abs().max()) + 1e-15, name
+
+
+@pytest.mark.parametrize("kind", ["north_pole", "seam", "at_camera", "huge", "mixed_scales", "disc_edge_on",
+                                  "zero_quat", "tiny_quat", "opacity_zero", "beyond_hemisphere"])
+def test_projection_gradient_kernel_on_hard_cases(kind, monkeypatch):
+    params = hard_case_scene(kind, torch.float64)
+    kernel = _projection_grads(params, _view(torch.float64), splatting.EquirectCamera(16, 32), False, monkeypatch)
+    reference = _projection_grads(params, _view(torch.float64), splatting.EquirectCamera(16, 32), True, monkeypatch)
+    for a, r in zip(kernel, reference):
+        assert torch.isfinite(a).all() and float((a - r).abs().max()) <= 1e-8 * float(r.abs().max()) + 1e-15
