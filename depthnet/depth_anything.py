@@ -30,6 +30,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from depthnet.runner import write_metadata
+from runfs.checkpoints import load_weights
 from runfs.errors import PanoError
 
 PATCH = 14
@@ -348,11 +349,7 @@ def load_checkpoint(path: str | Path) -> DepthAnythingV2:
     path = Path(path)
     if not path.is_file():
         raise PanoError(path, "checkpoint file does not exist")
-    try:
-        sd = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise PanoError(path, f"not a readable PyTorch checkpoint: {first[:200]}") from None
+    sd = load_weights(path)
     if isinstance(sd, dict):
         for wrapper in ("state_dict", "model"):
             if isinstance(sd.get(wrapper), dict):
@@ -439,11 +436,11 @@ def export_module(
 
 
 def _session(onnx_path: str | Path):
-    import onnxruntime as ort
+    from models.onnxrt import inference_session, onnxruntime
 
-    opts = ort.SessionOptions()
+    opts = onnxruntime().SessionOptions()
     opts.log_severity_level = 4
-    return ort.InferenceSession(str(onnx_path), opts, providers=["CPUExecutionProvider"])
+    return inference_session(onnx_path, opts, ["CPUExecutionProvider"])
 
 
 def onnx_vs_torch(module: nn.Module, onnx_model, x: torch.Tensor) -> float:

@@ -119,8 +119,9 @@ class OnnxDepthModel:
         """`contract` given: used as is. Else the contract the model's metadata records (pano-pipe's
         exports write it, key `pano_pipe.depth_contract`), with `overrides` (the user's settings) on
         top, and DepthContract's defaults for the rest."""
-        import onnxruntime as ort
+        from models.onnxrt import inference_session, onnxruntime
 
+        ort = onnxruntime()
         self.path = Path(path)
         if not self.path.is_file():
             raise PanoError(self.path, "depth model not found")
@@ -134,7 +135,7 @@ class OnnxDepthModel:
         elif missing := [p for p in providers if p not in have]:
             raise PanoError(self.path, f"onnxruntime providers {missing} not available here (have {have})")
         try:
-            self.session = ort.InferenceSession(str(self.path), opts, providers=providers)
+            self.session = inference_session(self.path, opts, providers)
         except Exception as exc:  # onnxruntime raises its own types; the user needs one line
             msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise PanoError(self.path, f"not a loadable ONNX model ({msg[:200]})") from None

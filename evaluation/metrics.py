@@ -380,10 +380,13 @@ def _download_backbone(net: str, dest: Path, allowed: bool) -> None:
 
 
 def _load_state(path: Path) -> dict:
+    from runfs.checkpoints import load_weights
+    from runfs.errors import PanoError
+
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # truncated download, not a checkpoint, pickled code: say which file
-        raise LpipsUnavailable(f"could not load LPIPS weights from {path}: {type(e).__name__}: {e}") from None
+        state = load_weights(path)
+    except PanoError as e:  # truncated download, not a checkpoint, pickled code: say which file
+        raise LpipsUnavailable(f"could not load LPIPS weights from {path}: {e.problem}") from None
     if not isinstance(state, dict):
         raise LpipsUnavailable(f"could not load LPIPS weights from {path}: not a state dict")
     return state

@@ -37,7 +37,7 @@ from gaussians.model import DEFAULT_EPS2D, Gaussians
 from runfs.errors import PanoError
 from runfs.limits import check_ply_count
 
-__all__ = ["save_ply", "load_ply", "ply_property_names"]
+__all__ = ["save_ply", "load_ply", "ply_property_names", "nonfinite_problem"]
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -60,9 +60,26 @@ def ply_property_names(num_rest: int, extras: bool = False) -> list[str]:
     return names
 
 
+def nonfinite_problem(g: Gaussians) -> str | None:
+    """How many Gaussians have a NaN or Inf parameter (of those a render reads), or None: a model
+    that diverged is never written as a result, nor read as one (export, render, view, evaluate)."""
+    n = len(g)
+    params = (g.means, g.quats, g.log_scales, g.opacity_logits, g.sh_dc, g.sh_rest)
+    ok = torch.ones(n, dtype=torch.bool, device=g.means.device)
+    for t in params:
+        ok &= torch.isfinite(t.detach().reshape(n, -1)).all(dim=1)
+    bad = n - int(ok.sum())
+    return f"{bad} of {n} Gaussians have NaN or Inf parameters" if bad else None
+
+
 def save_ply(path: str | Path, g: Gaussians, extras: bool = False) -> Path:
-    """Write `g` as a standard binary 3DGS PLY (see the module doc); returns the path."""
+    """Write `g` as a standard binary 3DGS PLY (see the module doc) straight to `path` (callers
+    write a result through runfs.fsutil.atomic_write or a stage's temporary folder); returns the
+    path. ValueError for a model with non-finite parameters."""
     path = Path(path)
+    problem = nonfinite_problem(g)
+    if problem:
+        raise ValueError(f"{path}: not written: {problem} (a model that diverged)")
     path.parent.mkdir(parents=True, exist_ok=True)
     n = len(g)
     num_rest = g.sh_rest.shape[1]
@@ -85,11 +102,9 @@ def save_ply(path: str | Path, g: Gaussians, extras: bool = False) -> Path:
     header.append(f"element vertex {n}")
     header += [f"property float {name}" for name in names]
     header += ["end_header"]
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
+    with open(path, "wb") as f:
         f.write(("\n".join(header) + "\n").encode("ascii"))
         f.write(data.tobytes())
-    tmp.replace(path)
     return path
 
 
@@ -197,7 +212,7 @@ def load_ply(path: str | Path, dtype=torch.float32) -> Gaussians:
     else:
         u0 = means.copy()
         is_layout = np.zeros(n, bool)
-    return Gaussians(
+    g = Gaussians(
         means=t(means),
         quats=t(get(["rot_0", "rot_1", "rot_2", "rot_3"])),
         log_scales=t(get(["scale_0", "scale_1", "scale_2"])),
@@ -209,3 +224,7 @@ def load_ply(path: str | Path, dtype=torch.float32) -> Gaussians:
         u0=t(u0),
         eps2d=eps2d,
     )
+    problem = nonfinite_problem(g)
+    if problem:
+        raise ValueError(f"{path}: {problem}; a model that diverged cannot be used (train it again)")
+    return g

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from runfs.checkpoints import load_weights
 from runfs.errors import PanoError
 
 MAX_DIFF = 1e-4
@@ -68,12 +69,7 @@ def load_checkpoint(path: str | Path) -> torch.nn.Module:
     path = Path(path)
     if not path.is_file():
         raise PanoError(path, "checkpoint file does not exist")
-    try:
-        # weights_only: HorizonNet checkpoints hold only tensors, dicts and plain values.
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise PanoError(path, f"not a readable PyTorch checkpoint: {first[:200]}") from None
+    ckpt = load_weights(path)  # HorizonNet checkpoints hold only tensors, dicts and plain values
     if not isinstance(ckpt, dict):
         raise PanoError(path, f"expected a dict with 'state_dict', got {type(ckpt).__name__}")
     sd = ckpt.get("state_dict", ckpt)

@@ -27,9 +27,9 @@ __all__ = ["LayoutModel", "resolve_providers", "check_contract", "INPUT_SHAPE", 
 
 def resolve_providers(requested: Sequence[str] | None = None) -> list[str]:
     """onnxruntime providers: the requested ones that exist, or CUDA when present, then CPU."""
-    import onnxruntime as ort
+    from models.onnxrt import onnxruntime
 
-    available = ort.get_available_providers()
+    available = onnxruntime().get_available_providers()
     if requested:
         missing = [p for p in requested if p not in available]
         if missing:
@@ -73,8 +73,9 @@ class LayoutModel:
     """A loaded, checked HorizonNet-compatible ONNX model."""
 
     def __init__(self, path: str | Path, providers: Sequence[str] | None = None, threads: int | None = None):
-        import onnxruntime as ort
+        from models.onnxrt import inference_session, onnxruntime
 
+        ort = onnxruntime()
         self.path = Path(path)
         if not self.path.is_file():
             raise PanoError(self.path, "layout model file does not exist")
@@ -83,9 +84,7 @@ class LayoutModel:
             opts.intra_op_num_threads = threads
         opts.log_severity_level = 3
         try:
-            self.session = ort.InferenceSession(
-                str(self.path), sess_options=opts, providers=resolve_providers(providers)
-            )
+            self.session = inference_session(self.path, opts, resolve_providers(providers))
         except PanoError:
             raise
         except Exception as e:  # onnxruntime raises its own exception types

@@ -18,7 +18,7 @@ def list_command() -> None:
     from rich.markup import escape
 
     from models.registry import known_models
-    from models.store import cache_dir, checkpoint_path, onnx_path, read_record
+    from models.store import cache_dir, checkpoint_path, checkpoint_problem, onnx_path, onnx_problem, read_record
     from pipeline.console import console
 
     console.print(escape(f"model cache: {cache_dir()}"), soft_wrap=True)
@@ -26,10 +26,15 @@ def list_command() -> None:
         pinned = read_record(entry).get("sha256")
         sha = entry.sha256 or (f"{pinned} (not published; pinned at the first fetch)" if pinned
                                else "not published (computed and pinned at the first fetch)")
-        present = ("yes" if onnx_path(entry).is_file()
-                   else "checkpoint only (exported on first use)" if checkpoint_path(entry).is_file() else "no")
+        ckpt_problem = checkpoint_problem(entry)
+        present = ("yes" if onnx_problem(entry) is None
+                   else "checkpoint only (exported on first use)" if ckpt_problem is None
+                   else f"damaged ({ckpt_problem}; `pano-pipe models fetch {entry.name}` replaces it)"
+                   if checkpoint_path(entry).is_file()
+                   else f"damaged export ({onnx_problem(entry)}; `pano-pipe models fetch {entry.name}` replaces it)"
+                   if onnx_path(entry).is_file() else "no")
         size = f"{entry.size_mb:.0f} MB" if entry.size_mb else "size unknown"
-        lines = [f"[bold]{escape(entry.name)}[/]  {entry.kind}  {size}  present: {present}"]
+        lines = [f"[bold]{escape(entry.name)}[/]  {entry.kind}  {size}  present: {escape(present)}"]
         if entry.description:
             lines.append(f"  {escape(entry.description)}")
         lines += [f"  source:  {escape(entry.host_name)} {escape(entry.url)}",

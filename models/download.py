@@ -15,12 +15,13 @@ from pathlib import Path
 
 from models.registry import KnownModel, get_model
 from models.store import (
-    cache_dir,
     checkpoint_path,
     expected_sha256,
     export,
     load_exporter,
+    make_cache_dir,
     onnx_path,
+    onnx_problem,
     read_record,
     record_path,
     sha256_file,
@@ -78,8 +79,7 @@ def fetch(name: str, force: bool = False, log=print) -> Fetched:
     entry = get_model(name)
     load_exporter(entry.exporter)  # before a download it could not use
     ckpt, onnx = checkpoint_path(entry), onnx_path(entry)
-    cache = cache_dir()
-    cache.mkdir(parents=True, exist_ok=True)
+    cache = make_cache_dir()
     if force:
         for p in (ckpt, onnx, record_path(entry)):
             p.unlink(missing_ok=True)
@@ -88,10 +88,10 @@ def fetch(name: str, force: bool = False, log=print) -> Fetched:
     if ckpt.is_file():
         log(f"{entry.filename} is in the cache ({ckpt}); checking it")
         digest = sha256_file(ckpt)
-        if want is not None and digest != want:
-            raise PanoError(ckpt, f"SHA-256 {digest} does not match {entry.name}'s {want}: remove the "
-                                  f"file or run `pano-pipe models fetch {entry.name} --force`")
-    else:
+        if want is not None and digest != want:  # truncated or altered: not the model; fetched again
+            log(f"SHA-256 {digest} does not match {want}: the cached file is damaged; downloading it again")
+            ckpt.unlink()
+    if not ckpt.is_file():
         size = f" (about {entry.size_mb:.0f} MB)" if entry.size_mb else ""
         log(f"downloading {entry.filename}{size} from {entry.host_name}: {entry.url}")
         with tempfile.TemporaryDirectory(prefix=".fetch-", dir=cache) as tmp:
@@ -113,7 +113,7 @@ def fetch(name: str, force: bool = False, log=print) -> Fetched:
     else:
         log(f"SHA-256 {digest} verified")
     exported = False
-    if force or not onnx.is_file() or read_record(entry).get("sha256") != digest:
+    if force or onnx_problem(entry) is not None or read_record(entry).get("sha256") != digest:
         log(f"exporting to ONNX with {entry.exporter}")
         try:
             export(ckpt, onnx, entry.exporter)

@@ -28,6 +28,9 @@ DEFAULT_EXPORTERS: dict[str, str] = {
     "layout": "layoutnet.export:export_checkpoint",
     "depth": "depthnet.depth_anything:export_onnx",
 }
+#: The only functions pano-pipe calls as an exporter: a registry entry names one of these, never any
+#: other "module:function" (`os:system`, `shutil:copyfile` would run with the entry's file names).
+ALLOWED_EXPORTERS = frozenset(DEFAULT_EXPORTERS.values())
 
 
 @dataclass(frozen=True)
@@ -132,13 +135,40 @@ def _extra_entries() -> list[KnownModel]:
             raise PanoError(p, f"entry {i}: {what}")
         if item["kind"] not in DEFAULT_EXPORTERS or item["host"] not in ("gdrive", "huggingface", "url"):
             raise PanoError(p, f"entry {i}: kind must be layout or depth, host gdrive, huggingface or url")
-        sha = item["sha256"]
-        if sha is not None and not (isinstance(sha, str) and len(sha) == 64
-                                    and all(c in "0123456789abcdef" for c in sha.lower())):
-            raise PanoError(p, f"entry {i}: sha256 must be 64 hex digits or null")
-        item["sha256"] = sha.lower() if sha else None
+        problem = entry_problem(item)
+        if problem:
+            raise PanoError(p, f"entry {i}: {problem}")
+        item["sha256"] = item["sha256"].lower() if item["sha256"] else None
         out.append(KnownModel(**item))
     return out
+
+
+def entry_problem(item: dict) -> str | None:
+    """Why a registry entry is not one pano-pipe may use, or None. Built-in entries meet it too:
+    the name and the file name become file names in the model cache (safe stems: no `/`, no `..`),
+    the exporter is one of ALLOWED_EXPORTERS, a plain URL is http(s)."""
+    from runfs.paths import shorten, stem_problem
+
+    for key in ("name", "filename", "source", "licence", "description"):
+        if key in item and not isinstance(item[key], str):
+            return f"{key} must be text"
+    for key in ("name", "filename"):
+        problem = stem_problem(item[key])
+        if problem:
+            return f"{key} {shorten(item[key])} names a file in the model cache, and it {problem}"
+    if item["exporter"] not in ALLOWED_EXPORTERS:
+        return (f"exporter {shorten(str(item['exporter']))} is not one pano-pipe calls; "
+                f"choose {' or '.join(sorted(ALLOWED_EXPORTERS))}")
+    if item["host"] == "url" and not item["source"].lower().startswith(("https://", "http://")):
+        return f"source {shorten(item['source'])} must be an http(s) URL"
+    size = item.get("size_mb")
+    if size is not None and (isinstance(size, bool) or not isinstance(size, int | float) or not 0 < size < 1e6):
+        return "size_mb must be a positive number of megabytes or null"
+    sha = item.get("sha256")
+    if sha is not None and not (isinstance(sha, str) and len(sha) == 64
+                                and all(c in "0123456789abcdef" for c in sha.lower())):
+        return "sha256 must be 64 hex digits or null"
+    return None
 
 
 def known_models(kind: str | None = None) -> dict[str, KnownModel]:

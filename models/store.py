@@ -5,20 +5,25 @@ Cache ($PANO_PIPE_MODELS_DIR, else $XDG_CACHE_HOME/pano-pipe/models, else
 
     <cache>/<filename>                 a known model's checkpoint, as published
     <cache>/<name>.onnx                its ONNX export (made once, kept beside it)
-    <cache>/<name>.json                what was fetched: source, SHA-256 (pinned on first fetch)
+    <cache>/<name>.json                what was fetched: source, SHA-256 (pinned on first fetch),
+                                       and the SHA-256 of the ONNX export
     <cache>/exported/<kind>-<sha16>.onnx   the export of a user's own .pth, by content hash
+
+A cached file is trusted only while its hash matches: the checkpoint's the registry's (or the
+pinned) one, the export's the one recorded when it was made. A truncated or altered file is not
+"present"; `models fetch` replaces it, a run says how to.
 """
 
 from __future__ import annotations
 
-import hashlib
+import contextlib
 import importlib
 import json
 import os
 import tempfile
 from pathlib import Path
 
-from models.registry import DEFAULT_EXPORTERS, KnownModel, get_model, known_models
+from models.registry import ALLOWED_EXPORTERS, DEFAULT_EXPORTERS, KnownModel, get_model, known_models
 from runfs.errors import PanoError
 
 CACHE_ENV = "PANO_PIPE_MODELS_DIR"
@@ -33,24 +38,54 @@ def cache_dir() -> Path:
     return Path(base).expanduser() / "pano-pipe" / "models"
 
 
+def make_cache_dir(sub: str = "") -> Path:
+    """The cache folder (or `sub` inside it), made if needed; one line when the place is taken by a
+    file or a link to nothing (mkdir would only say "File exists")."""
+    folder = cache_dir() / sub if sub else cache_dir()
+    for p in (cache_dir(), folder):
+        if p.is_symlink() and not p.exists():
+            raise PanoError(p, f"the model cache is a symbolic link to {os.readlink(p)}, which does not exist "
+                               f"(set ${CACHE_ENV} to a folder)")
+        if p.exists() and not p.is_dir():
+            raise PanoError(p, f"the model cache must be a folder, this is a file (set ${CACHE_ENV} to a folder)")
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def _cache_file(name: str) -> Path:
+    """A file directly in the cache; registry entries are checked, this keeps it so for any caller."""
+    from runfs.paths import stem_problem
+
+    if stem_problem(name):
+        raise PanoError(name, f"not a file name in the model cache: it {stem_problem(name)}")
+    return cache_dir() / name
+
+
 def checkpoint_path(entry: KnownModel) -> Path:
-    return cache_dir() / entry.filename
+    return _cache_file(entry.filename)
 
 
 def onnx_path(entry: KnownModel) -> Path:
-    return cache_dir() / f"{entry.name}.onnx"
+    return _cache_file(f"{entry.name}.onnx")
 
 
 def record_path(entry: KnownModel) -> Path:
-    return cache_dir() / f"{entry.name}.json"
+    return _cache_file(f"{entry.name}.json")
+
+
+_hashes: dict[tuple, str] = {}
 
 
 def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+    """The file's SHA-256, remembered for this process while its size and time stay the same
+    (`status` and `models list` ask about every cached model)."""
+    st = os.stat(path)
+    key = (str(Path(path).resolve()), st.st_size, st.st_mtime_ns, st.st_ino)
+    if key not in _hashes:
+        from runfs.fsutil import sha256_file as digest
+
+        _hashes[key] = digest(path)
+    return _hashes[key]
 
 
 def read_record(entry: KnownModel) -> dict:
@@ -65,9 +100,33 @@ def expected_sha256(entry: KnownModel) -> str | None:
     return entry.sha256 or read_record(entry).get("sha256")
 
 
+def checkpoint_problem(entry: KnownModel) -> str | None:
+    """Why the cached checkpoint cannot be used ('not downloaded', a hash that differs), or None."""
+    path = checkpoint_path(entry)
+    if not path.is_file():
+        return "not downloaded"
+    want = expected_sha256(entry)
+    if want is not None and (got := sha256_file(path)) != want:
+        return f"SHA-256 {got} does not match {want} (truncated or altered)"
+    return None
+
+
+def onnx_problem(entry: KnownModel) -> str | None:
+    """Why the cached ONNX export cannot be used (absent, or not the file that was exported), or None."""
+    path = onnx_path(entry)
+    if not path.is_file():
+        return "not exported"
+    want = read_record(entry).get("onnx_sha256")
+    if want is None:
+        return "no record of its export (made by an older pano-pipe, or not by pano-pipe)"
+    if (got := sha256_file(path)) != want:
+        return f"SHA-256 {got} does not match the export's {want} (truncated or altered)"
+    return None
+
+
 def is_present(entry: KnownModel) -> bool:
-    """Ready to use without a download: the export or the checkpoint is in the cache."""
-    return onnx_path(entry).is_file() or checkpoint_path(entry).is_file()
+    """Ready to use without a download: a verified export or a verified checkpoint is in the cache."""
+    return onnx_problem(entry) is None or checkpoint_problem(entry) is None
 
 
 def missing_message(entry: KnownModel) -> str:
@@ -77,6 +136,8 @@ def missing_message(entry: KnownModel) -> str:
 
 
 def load_exporter(spec: str):
+    if spec not in ALLOWED_EXPORTERS:  # registry entries are checked; this holds for any caller
+        raise PanoError(spec, f"not a model exporter pano-pipe calls ({', '.join(sorted(ALLOWED_EXPORTERS))})")
     module, _, func = spec.partition(":")
     try:
         return getattr(importlib.import_module(module), func)
@@ -87,13 +148,20 @@ def load_exporter(spec: str):
 def export(checkpoint: Path, out: Path, exporter: str) -> Path:
     """checkpoint → ONNX at `out`, written beside it under a temporary name and renamed into place,
     so an interrupted export never leaves a half file that a later run would take for a model."""
-    out.parent.mkdir(parents=True, exist_ok=True)
     fn = load_exporter(exporter)
+    made = not out.parent.exists()
+    make_cache_dir(out.parent.name if out.parent != cache_dir() else "")
     fd, tmp = tempfile.mkstemp(prefix=f".{out.stem}.", suffix=".onnx", dir=out.parent)
     os.close(fd)
     try:
         fn(checkpoint, Path(tmp))
         os.replace(tmp, out)
+    except BaseException:
+        if made:  # a failed export leaves nothing in the cache, not even the folder it made
+            Path(tmp).unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                out.parent.rmdir()
+        raise
     finally:
         Path(tmp).unlink(missing_ok=True)
     return out
@@ -110,12 +178,15 @@ def verify(entry: KnownModel, path: Path) -> str:
 
 
 def ensure_onnx(entry: KnownModel) -> Path:
-    """The known model's ONNX file, exporting its cached checkpoint once; PanoError when absent."""
+    """The known model's ONNX file, verified, exporting its cached checkpoint once (again when the
+    export is not the file that was made); PanoError when neither is usable."""
     onnx = onnx_path(entry)
-    if onnx.is_file():
+    if onnx_problem(entry) is None:
         return onnx
     ckpt = checkpoint_path(entry)
     if not ckpt.is_file():
+        if onnx.is_file():
+            raise PanoError(onnx, f"{onnx_problem(entry)}; run `pano-pipe models fetch {entry.name}` to replace it")
         raise PanoError(ckpt, missing_message(entry))
     digest = verify(entry, ckpt)
     from pipeline.console import console
@@ -127,9 +198,14 @@ def ensure_onnx(entry: KnownModel) -> Path:
 
 
 def write_record(entry: KnownModel, digest: str) -> None:
+    """What was fetched and exported: the checkpoint's hash (pinned) and the export's (checked on use)."""
+    from runfs.fsutil import atomic_write_text
+
+    onnx = onnx_path(entry)
     rec = {"name": entry.name, "kind": entry.kind, "source": entry.url, "filename": entry.filename,
-           "sha256": digest, "sha256_published": entry.sha256 is not None, "exporter": entry.exporter}
-    record_path(entry).write_text(json.dumps(rec, indent=2) + "\n")
+           "sha256": digest, "sha256_published": entry.sha256 is not None, "exporter": entry.exporter,
+           "onnx_sha256": sha256_file(onnx) if onnx.is_file() else None}
+    atomic_write_text(record_path(entry), json.dumps(rec, indent=2) + "\n")
 
 
 def _export_user_checkpoint(path: Path, kind: str) -> Path:

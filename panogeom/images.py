@@ -7,6 +7,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from runfs.fsutil import native_write
+
 
 def read_rgb(path: str | Path, size: tuple[int, int] | None = None) -> np.ndarray:
     """Read an image as float32 RGB [H,W,3] in [0,1]; optionally resize to (H, W) with area filtering."""
@@ -27,5 +29,5 @@ def write_rgb(path: str | Path, rgb: np.ndarray) -> None:
     if arr.dtype != np.uint8:
         arr = (np.clip(arr, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), cv2.cvtColor(arr, cv2.COLOR_RGB2BGR)):
-        raise OSError(f"{path}: could not write image")
+    bgr = cv2.cvtColor(arr, cv2.COLOR_RGB2BGR)
+    native_write(Path(path), lambda: cv2.imwrite(str(path), bgr), "image")

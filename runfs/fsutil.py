@@ -30,9 +30,14 @@ def atomic_folder(final: Path) -> Iterator[Path]:
     tmp.mkdir()
     try:
         yield tmp
-    except BaseException:
+    except BaseException as e:
         with signals_held():
             shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(e, OSError) and e.filename is None and e.errno is not None:
+            # a write() on a full disk names no file: name the folder that was not written
+            from runfs.errors import PanoError
+
+            raise PanoError(final, f"not written: {e.strerror or e}") from e
         raise
     # the swap and the cleanup run whole: a Ctrl-C or SIGTERM meanwhile is handled right after, so
     # it never leaves the folder missing or an .old- copy behind
@@ -71,6 +76,14 @@ def atomic_write(path: Path, write: Callable[[Path], object]) -> Path:
     try:
         write(tmp)
         os.replace(tmp, path)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        if e.filename not in (None, str(tmp)):
+            raise
+        # a write() on a full disk names no file; the temporary one means nothing to the user
+        from runfs.errors import PanoError
+
+        raise PanoError(path, f"not written: {e.strerror or e}") from None
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -161,3 +174,38 @@ def remove_stale_temporaries(folder: Path, stage: str | None = None) -> list[Pat
                 p.unlink(missing_ok=True)
                 removed.append(p)
     return removed
+
+
+@contextlib.contextmanager
+def native_stderr_off() -> Iterator[None]:
+    """File descriptor 2 pointed at /dev/null for the block: native libraries (libpng, OpenCV,
+    open3d's RPly) write their own messages there, hundreds of lines on a full disk, which the
+    one-line error contract does not allow; pano-pipe names the file itself."""
+    import sys
+
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):
+        yield
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 2)
+    os.close(devnull)
+    try:
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def native_write(path: Path, write: Callable[[], bool], what: str = "file") -> None:
+    """Run a native library's writer (cv2.imwrite, open3d's write_point_cloud: they return False on
+    failure and print on fd 2) with its messages kept off stderr; a failure is one PanoError
+    naming the file."""
+    from runfs.errors import PanoError
+
+    with native_stderr_off():
+        ok = write()
+    if not ok:
+        raise PanoError(path, f"could not write the {what} (a full disk, or no permission?)")

@@ -17,13 +17,13 @@ importers, export and the viewer (docs/security.md, "Limits").
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import struct
 from pathlib import Path
 
 from runfs.errors import PanoError
+from runfs.fsutil import native_stderr_off
 
 #: Images over this many megapixels are refused before decoding (a 20000x10000 PNG of zeros is
 #: 583 KB on disk and 600 MB decoded). `--max-megapixels` or PANO_PIPE_MAX_MEGAPIXELS change it.
@@ -47,6 +47,15 @@ def max_megapixels() -> float:
 
 
 # ----------------------------------------------------------------------------- images
+def pixels_problem(h: int, w: int, limit_mp: float | None = None) -> str | None:
+    """Why an H x W image (read, or about to be allocated at a working size) is over the pixel
+    limit, or None. The one check behind images, depth maps and the settings that set a size."""
+    limit_mp = max_megapixels() if limit_mp is None else limit_mp
+    if h * w > limit_mp * 1e6:
+        return f"is {w}x{h} ({h * w / 1e6:.0f} megapixels), over the limit of {limit_mp:g}"
+    return None
+
+
 def _exr_size(path: Path) -> tuple[int, int] | None:
     """(H, W) from an OpenEXR header's dataWindow attribute, or None if it is not one."""
     try:
@@ -113,9 +122,9 @@ def check_image_size(path: Path, limit_mp: float | None = None, min_height: int 
     h, w = hw
     if h <= 0 or w <= 0:
         raise PanoError(path, f"{what} header claims {w}x{h} pixels")
-    if h * w > limit_mp * 1e6:
-        raise PanoError(path, f"{what} is {w}x{h} ({h * w / 1e6:.0f} megapixels), over the limit of "
-                              f"{limit_mp:g}; resize it, or raise --max-megapixels")
+    problem = pixels_problem(h, w, limit_mp)
+    if problem:
+        raise PanoError(path, f"{what} {problem}; resize it, or raise --max-megapixels")
     if h < min_height:
         raise PanoError(path, f"{what} is {w}x{h}; panoramas need at least {min_height} rows")
     return hw
@@ -129,30 +138,8 @@ def read_image(path: Path, flags: int | None = None, what: str = "image", min_he
     import cv2
 
     check_image_size(path, limit_mp, min_height=min_height, what=what)
-    with _native_stderr_off():  # libpng prints "libpng error: ..." itself; the caller says it in one line
+    with native_stderr_off():  # libpng prints "libpng error: ..." itself; the caller says it in one line
         return cv2.imread(str(path), cv2.IMREAD_UNCHANGED if flags is None else flags)
-
-
-@contextlib.contextmanager
-def _native_stderr_off():
-    """File descriptor 2 pointed at /dev/null for the block: decoders' C libraries write their own
-    messages there, which the one-line error contract does not allow."""
-    import sys
-
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError):
-        yield
-        return
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, 2)
-    os.close(devnull)
-    try:
-        yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
 
 
 # ----------------------------------------------------------------------------- .npy

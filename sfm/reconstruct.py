@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 import pycolmap
 
+from runfs.fsutil import native_write
 from sfm.records import Panorama, Reconstruction, SfmOptions
 from sfm.rig import VirtualRig
 
@@ -103,8 +104,7 @@ def _empty(verified_pairs: int, timings: dict[str, float]) -> Reconstruction:
 
 def _write_png(path: Path, image: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), image):
-        raise OSError(f"{path}: could not write image")
+    native_write(path, lambda: cv2.imwrite(str(path), image), "image")
 
 
 class _Feed(ABC):

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from runfs.errors import PanoError
+from runfs.fsutil import native_write
 from schemas.cloud import CloudFiles
 
 NPZ_NAME = "cloud.npz"
@@ -74,8 +75,7 @@ def write_ply(path: Path, pts: np.ndarray, col: np.ndarray, nrm: np.ndarray) -> 
     pc.points = o3d.utility.Vector3dVector(pts.astype(np.float64))
     pc.colors = o3d.utility.Vector3dVector(col.astype(np.float64))
     pc.normals = o3d.utility.Vector3dVector(nrm.astype(np.float64))
-    if not o3d.io.write_point_cloud(str(path), pc, write_ascii=False):
-        raise OSError(f"{path}: could not write PLY")
+    native_write(path, lambda: o3d.io.write_point_cloud(str(path), pc, write_ascii=False), "point cloud")
 
 
 def read_cloud(path: str | Path) -> dict[str, np.ndarray]:
