@@ -4,15 +4,24 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, field_validator
+
+from runfs.paths import safe_stem
 
 
 class ViewMetrics(BaseModel):
     view: str
+
+    @field_validator("view")
+    @classmethod
+    def _safe_name(cls, name: str) -> str:  # it names the report's image files, as it named the scene's
+        return safe_stem(name)
+
     split: Literal["train", "test"]
-    psnr: float
-    ssim: float
-    ws_psnr: float = Field(description="PSNR with rows weighted by cos(latitude).")
+    # None where the value is not finite (a render of NaNs, a perfect match): the report says it is missing
+    psnr: float | None
+    ssim: float | None
+    ws_psnr: float | None = Field(description="PSNR with rows weighted by cos(latitude).")
     lpips: float | None = Field(default=None, description="None when LPIPS is unavailable (see lpips_reason).")
     psnr_colorfit: float | None = Field(
         default=None, description="PSNR after a per-channel least-squares gain and bias of the render to the "
@@ -33,7 +42,7 @@ class ViewMetrics(BaseModel):
 
 class EvaluateOutput(BaseModel):
     views: list[ViewMetrics]
-    mean: dict[str, float] = Field(
+    mean: dict[str, float | None] = Field(
         description="Metric -> mean over the evaluated views (psnr, ssim, ws_psnr, and lpips / depth_* where available)."
     )
     csv: str = Field(description="metrics.csv: one row per view plus a 'mean' row.")

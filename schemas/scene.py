@@ -3,17 +3,22 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, Strict, field_validator, model_validator
 
 from runfs.paths import safe_relative, safe_stem, scene_file
 
-Matrix4 = list[list[float]]
+#: A number in scene.json: an int or a float, finite (the models refuse NaN and Inf), never a
+#: boolean (pydantic would read `true` as 1.0) or a string.
+Real = Annotated[float, Strict()]
+Matrix4 = list[list[Real]]
 
-#: Bounds that catch unit mistakes (millimetres for metres) and overflow before any geometry runs.
+#: Bounds that catch unit mistakes (millimetres for metres, kilometres for metres) and overflow
+#: or underflow before any geometry runs.
 MAX_CAMERA_HEIGHT = 100.0
+MIN_CAMERA_HEIGHT = 0.05
 MAX_TRANSLATION = 1e5
 
 LAYOUT_SUFFIXES = (".json", ".txt", ".npy")
@@ -23,7 +28,7 @@ DEPTH_SUFFIXES = (".png", ".npy")
 class View(BaseModel):
     """One panorama: its image, camera-to-world pose and split."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     name: str = Field(min_length=1, description="Unique view name, also the stem of its files.")
     image: str = Field(description="Equirectangular image (2:1), relative to the scene folder.")
@@ -31,8 +36,8 @@ class View(BaseModel):
         default=None, description="Camera-to-world 4x4, row-major, metres; OpenCV axes, y down. Left out, "
                                   "the poses stage recovers it from the panoramas.")
     split: Literal["train", "test"] = "train"
-    camera_height: float | None = Field(
-        default=None, gt=0, le=MAX_CAMERA_HEIGHT, description="Camera height above the floor in metres, where known."
+    camera_height: Real | None = Field(
+        default=None, ge=MIN_CAMERA_HEIGHT, le=MAX_CAMERA_HEIGHT, description="Camera height above the floor in metres, where known."
     )
     layout: str | None = Field(
         default=None, description="Supplied layout boundaries (.json HorizonNet, .txt corners, .npy [2,W])."
@@ -102,14 +107,14 @@ REAL_CAPTURE_NADIR_DEG = 35.0
 class SceneManifest(BaseModel):
     """`scene.json`: the list of views. Paths are relative to the scene folder."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     name: str | None = Field(default=None, description="Scene name; defaults to the folder name.")
     views: list[View] = Field(min_length=1)
     floor_plan: str | None = Field(
         default=None, description="Ground-truth floor plan JSON (simulator), for evaluation only."
     )
-    nadir_mask_deg: float = Field(
+    nadir_mask_deg: Real = Field(
         default=0.0, ge=0.0, le=90.0,  # REAL_CAPTURE_NADIR_DEG is the value for captured panoramas
         description="A cap of this angular radius around every view's nadir (tripod, hand) is left out of "
                     "training, depth back-projection and metrics; 0 = off.")

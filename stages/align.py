@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from panogeom.equirect import angles_to_dirs, column_longitudes, row_latitudes
 from panogeom.surfaces import CEILING, FLOOR, NONE, SURFACE_NAMES, WALL
@@ -39,6 +39,7 @@ from pipeline.stage import StageContext
 from schemas.align import AlignOutput, KindFit
 from schemas.depth import DEPTH_MODELS
 from schemas.scene import Scene
+from schemas.stage_params import StageParams
 
 Output = AlignOutput
 
@@ -47,9 +48,7 @@ LABELS = {name: k for k, name in enumerate(SURFACE_NAMES)}
 EQUATIONS = {"metric": "d = s*v", "relative": "d = s*v + t", "disparity": "1/d = s*v + t"}
 
 
-class Params(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class Params(StageParams):
     inlier_threshold: float = Field(
         default=0.1,
         gt=0,

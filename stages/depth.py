@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from models.store import fetch_hint, model_label
 from runfs.errors import PanoError
@@ -33,13 +33,12 @@ from runfs.limits import load_npy, read_image
 from pipeline.stage import StageContext
 from schemas.depth import DepthOutput, ViewDepth
 from schemas.scene import Scene, View
+from schemas.stage_params import StageParams
 
 Output = DepthOutput
 
 
-class Params(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class Params(StageParams):
     model: str | Path | None = Field(
         default=None,
         description="Depth model: a name from `pano-pipe models list` (depth-anything-v2-small; get it with "
@@ -57,19 +56,22 @@ class Params(BaseModel):
     normalization: Literal["unit", "imagenet"] | None = Field(
         default=None, description="None: from the model's metadata, else unit ([0,1] RGB)."
     )
-    input_size: tuple[int, int] | None = Field(default=None, description="(H, W) fed to the model.")
+    input_size: tuple[int, int] | None = Field(default=None, json_schema_extra={"pixels": "hw"},
+                                              description="(H, W) fed to the model.")
     multiple_of: int | None = Field(
         default=None, ge=1, description="Input sides a multiple of this (14: Depth Anything); None: from the "
         "model's metadata, else 1."
     )
-    max_height: int = Field(default=512, ge=8, description="Model input height cap when its size is dynamic.")
+    max_height: int = Field(default=512, ge=8, json_schema_extra={"pixels": "panorama_height"},
+                            description="Model input height cap when its size is dynamic.")
     projection: Literal["equirect", "cubemap"] | None = Field(
         default=None,
         description="equirect: 360° model; cubemap: perspective model on six cube faces. None: from the "
         "model's metadata, else equirect."
     )
     face_size: int | None = Field(
-        default=None, ge=8, description="Cube face side (px) for a model of dynamic size; None: from the "
+        default=None, ge=8, json_schema_extra={"pixels": "square"},
+        description="Cube face side (px) for a model of dynamic size; None: from the "
         "model's metadata, else 256."
     )
     face_fov_deg: float = Field(
@@ -83,7 +85,8 @@ class Params(BaseModel):
         default="file", description="Which source wins when a view has both."
     )
     output_height: int | None = Field(
-        default=None, ge=8, description="Height of the stored model maps; default min(image height, 512)."
+        default=None, ge=8, json_schema_extra={"pixels": "panorama_height"},
+        description="Height of the stored model maps; default min(image height, 512)."
     )
     near_limit: float = Field(default=0.05, ge=0, description="Metric depth below this (m) is invalid.")
     far_limit: float = Field(default=100.0, gt=0, description="Metric depth beyond this (m) is invalid.")

@@ -20,7 +20,7 @@ from typing import Literal
 import cv2
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
 
 from evaluation import metrics as M
 from evaluation.model_io import equirect_camera, load_model, render_pose
@@ -32,17 +32,16 @@ from schemas.scene_loader import valid_mask
 from pipeline.stage import Loaded, StageContext
 from schemas.evaluate import EvaluateOutput, ViewMetrics
 from schemas.scene import Scene, View
+from schemas.stage_params import NAMES_FILE, StageParams
 
 Output = EvaluateOutput
 
 METRIC_KEYS = ("psnr", "ssim", "ws_psnr", "lpips", "depth_abs_rel", "depth_rmse", "psnr_colorfit", "ssim_colorfit")
 
 
-class Params(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class Params(StageParams):
     resolution: Literal["train", "image"] | tuple[int, int] = Field(
-        default="train",
+        default="train", json_schema_extra={"pixels": "hw"},
         description="Evaluation size: 'train' = the training (H, W) (ground truth area-downsampled to it), "
         "'image' = each test image's own size, or an explicit [H, W].",
     )
@@ -55,7 +54,7 @@ class Params(BaseModel):
     lpips_net: Literal["alex", "vgg"] = Field(
         default="alex", description="LPIPS backbone: alex (the 3DGS papers' choice) or vgg.")
     lpips_weights: str | None = Field(
-        default=None,
+        default=None, json_schema_extra=NAMES_FILE,
         description="Folder or .pth with LPIPS weights; default $PANO_PIPE_LPIPS_WEIGHTS, then the standard places "
         "(torch hub cache for the backbone, the lpips wheel for the heads).",
     )

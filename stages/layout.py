@@ -22,7 +22,7 @@ from typing import Literal
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from layoutnet import postprocess as pp
 from layoutnet.alignment import Alignment
@@ -32,14 +32,13 @@ from runfs.errors import PanoError
 from runfs.limits import read_image
 from pipeline.stage import StageContext
 from schemas.layout import LayoutAlignment, LayoutOutput, ViewLayout
-from schemas.scene import Scene, View
+from schemas.scene import MAX_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT, Scene, View
+from schemas.stage_params import StageParams
 
 Output = LayoutOutput
 
 
-class Params(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class Params(StageParams):
     model: str | Path | None = Field(
         default=None,
         description="Layout model: a name from `pano-pipe models list` (get it with `pano-pipe models fetch "
@@ -66,7 +65,8 @@ class Params(BaseModel):
         "walls at any angle (Atlanta). Corner files (.json/.txt) are used as given.",
     )
     default_camera_height: float = Field(
-        default=pp.DEFAULT_CAMERA_HEIGHT, gt=0, description="Camera height (m) where scene.json has none."
+        default=pp.DEFAULT_CAMERA_HEIGHT, ge=MIN_CAMERA_HEIGHT, le=MAX_CAMERA_HEIGHT,
+        description="Camera height (m) where scene.json has none."
     )
     wall_source: Literal["both", "ceiling", "floor"] = Field(
         default="both", description="Which boundary places the walls (both: the mean of the two distances)."

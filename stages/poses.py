@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from panogeom.images import read_rgb
 from pipeline.console import make_progress
@@ -31,7 +31,8 @@ from runfs.limits import image_size
 from schemas.scene_loader import valid_mask
 from pipeline.stage import Loaded, StageContext
 from schemas.poses import Attempt, PairRecord, PosesOutput, UprightPairReport, ViewPose
-from schemas.scene import Scene
+from schemas.scene import MAX_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT, Scene
+from schemas.stage_params import StageParams
 from sfm.frame import Alignment, align_to_floor, align_to_known
 from sfm.records import STEPS as SFM_STEPS
 from sfm.records import Panorama, Reconstruction, SfmOptions
@@ -53,9 +54,7 @@ Method = Literal["auto", "upright", "equirect", "rig", "upright-pair"]
 DEFAULT_HEIGHT = {"upright": 1024, "upright-pair": 1024, "equirect": 512, "rig": 512}
 
 
-class Params(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class Params(StageParams):
     method: Method = Field(
         default="auto", description="auto: the upright solver, COLMAP (equirect) where it places fewer views; "
                                     "upright: N levelled panoramas, pairs solved with the camera's gravity; "
@@ -63,14 +62,16 @@ class Params(BaseModel):
                                     "perspective views of each (more points, 8x slower); upright-pair: exactly "
                                     "two levelled panoramas; docs/poses.md.")
     working_height: int | None = Field(
-        default=None, ge=64, le=4096, description="Panoramas are resampled to this height (never up); default "
-                                                  "1024 for the upright solvers, 512 for COLMAP.")
+        default=None, ge=64, le=4096, json_schema_extra={"pixels": "panorama_height"},
+        description="Panoramas are resampled to this height (never up); default 1024 for the upright solvers, "
+                    "512 for COLMAP.")
     max_features: int = Field(default=4096, ge=100, description="SIFT features per image at most (COLMAP).")
     min_matches: int = Field(default=15, ge=5, description="Verified matches a pair of images needs to count "
                                                            "(COLMAP).")
     default_camera_height: float = Field(
-        default=1.6, gt=0, le=100, description="Camera height (m) for views without camera_height in scene.json: "
-                                               "it sets the metric scale when no view has a pose.")
+        default=1.6, ge=MIN_CAMERA_HEIGHT, le=MAX_CAMERA_HEIGHT,
+        description="Camera height (m) for views without camera_height in scene.json: it sets the metric scale "
+                    "when no view has a pose.")
     threads: int | None = Field(default=None, ge=1,
                                 description="CPU threads for COLMAP and the upright solver (default: all).")
     seed: int = Field(default=0, ge=0, le=2**31 - 1,
@@ -138,6 +139,10 @@ class PosesFailure(Exception):
 def run(ctx: StageContext) -> PosesOutput:
     scene, p = ctx.scene, ctx.params
     views = scene.views
+    if len(views) < 2:  # structure from motion places panoramas relative to each other
+        raise PanoError(scene.root / "scene.json", f"the scene has {len(views)} panorama and no pose for it; "
+                                                   "recovering poses needs at least two overlapping panoramas "
+                                                   "(or give the pose in scene.json)")
     if p.method == "upright-pair" and len(views) != 2:
         raise PanoError(scene.root, f"poses.method=upright-pair places two panoramas, the scene has {len(views)}; "
                                     "poses.method=upright places any number")

@@ -16,7 +16,7 @@ from typing import Literal
 
 import numpy as np
 import shapely
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 from shapely.geometry import Polygon
 from shapely.geometry.polygon import orient
 
@@ -27,6 +27,7 @@ from runfs.errors import PanoError
 from pipeline.stage import StageContext
 from schemas.sampling import SamplingOutput
 from schemas.scene import Scene
+from schemas.stage_params import StageParams
 from schemas.union import Room, UnionOutput
 from stages.cloud_io import write_cloud
 
@@ -34,9 +35,7 @@ Output = SamplingOutput
 
 
 
-class Params(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class Params(StageParams):
     density: float = Field(
         default=400.0,
         gt=0,

@@ -19,13 +19,13 @@ from typing import Literal
 import cv2
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 from rich.markup import escape
 
 import splatting
 from gaussians.init import from_cloud, random_points
 from gaussians.model import Gaussians
-from gaussians.ply import save_ply
+from gaussians.ply import nonfinite_problem, save_ply
 from gaussians.trainer import CHECKPOINT_NAME, Trainer, TrainConfig, TrainView, scene_extent
 from panogeom.equirect import angles_to_pixel, dirs_to_angles
 from panogeom.images import read_rgb
@@ -33,6 +33,7 @@ from runfs.errors import PanoError
 from schemas.scene_loader import valid_mask
 from pipeline.stage import StageContext
 from schemas.scene import Scene, View
+from schemas.stage_params import StageParams
 from schemas.train import CropRig, TrainOutput
 
 Output = TrainOutput
@@ -63,15 +64,14 @@ PROJECTION_DEFAULTS: dict[str, dict] = {
 }
 
 
-class Params(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class Params(StageParams):
     preset: Literal["fast", "paper", "quality"] = Field(
         default="fast", description="Fills every setting left unset: fast (CPU), paper (512x1024, 7k), quality (30k).")
     iterations: int | None = Field(
         default=None, ge=1,
         description="Optimisation steps, one training panorama each (None: the preset's).")
-    height: int | None = Field(default=None, ge=8, description="Training panorama height; width = 2 x height.")
+    height: int | None = Field(default=None, ge=8, json_schema_extra={"pixels": "panorama_height"},
+                               description="Training panorama height; width = 2 x height.")
     init: Literal["auto", "random", "layout", "depth", "layout+depth"] = Field(
         default="auto",
         description="auto = layout+depth with the align stage, layout with sampling only, random otherwise.")
@@ -84,7 +84,8 @@ class Params(BaseModel):
     crop_counts: tuple[int, ...] = Field(
         default=(2, 4, 2), description="Crops per elevation ring, yaws evenly spread from 0 (paper: 8 in all).")
     crop_size: int | None = Field(
-        default=None, ge=8, description="Crop side in pixels (None = the training height: 512 at 512x1024).")
+        default=None, ge=8, json_schema_extra={"pixels": "square"},
+        description="Crop side in pixels (None = the training height: 512 at 512x1024).")
     layout_reg: bool = Field(
         default=True, description="L_layout on/off (ablation); needs the layout cloud of the sampling stage.")
     lambda_l1: float = Field(default=0.8, ge=0, description="λ1: weight of the L1 photometric loss.")
@@ -105,7 +106,8 @@ class Params(BaseModel):
         "rendered from a random point between the training cameras (indoors every ray ends on a surface); "
         "sparse captures: 1 with lr_scale=0.125 (docs/training.md).")
     coverage_height: int | None = Field(
-        default=None, ge=4, description="Rows of the coverage loss's panorama (None = half the training height: "
+        default=None, ge=4, json_schema_extra={"pixels": "panorama_height"},
+        description="Rows of the coverage loss's panorama (None = half the training height: "
         "a coarser render blurs the holes between thin splats shut, a full-size one costs a second render).")
     random_turns: bool | None = Field(
         default=None, description="360: turn each training panorama's camera by a random rotation every time it "
@@ -566,6 +568,11 @@ def run(ctx: StageContext) -> TrainOutput:
             raise PanoError(ckpt, e.strerror or _one_line(e)) from e
 
     final = trainer.final_gaussians()
+    diverged = nonfinite_problem(final)
+    if diverged:  # never a result: evaluate, export and the report would take NaNs for a model
+        raise PanoError(ctx.out_dir.parent / "train",
+                        f"training diverged after {trainer.iteration} iterations: {diverged}; nothing was kept "
+                        "(lower the learning rates or loss weights)")
     save_ply(ctx.out_dir / "point_cloud.ply", final)
     if trainer.appearance is not None:  # for inspection: what exposure the model saw per panorama
         (ctx.out_dir / "appearance.json").write_text(json.dumps(trainer.appearance.as_dict(), indent=1))

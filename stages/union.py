@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import shapely
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 from shapely.geometry import GeometryCollection, MultiPolygon, Point, Polygon
 from shapely.geometry.polygon import orient
 from shapely.ops import unary_union
@@ -25,14 +25,13 @@ from runfs.errors import PanoError
 from pipeline.stage import StageContext
 from schemas.layout import LayoutOutput, ViewLayout
 from schemas.scene import Scene
+from schemas.stage_params import StageParams
 from schemas.union import Room, UnionOutput
 
 Output = UnionOutput
 
 
-class Params(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class Params(StageParams):
     tolerance: float = Field(
         default=0.05, ge=0, description="Gaps and slivers narrower than 2x this (m) are closed / removed."
     )
