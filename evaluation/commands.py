@@ -33,8 +33,10 @@ def _engine(scene: Path, out: Path | None, config: Path | None = None, set_: lis
     return make_engine(scene, out, config, set_)
 
 
-def _print_mean(mean: dict[str, float]) -> None:
-    shown = ", ".join(f"{k} {v:.4g}" for k, v in mean.items())
+def _print_mean(mean: dict[str, float | None]) -> None:
+    from evaluation.report_text import fmt
+
+    shown = ", ".join(f"{k} {fmt(v)}" for k, v in mean.items())
     console.print(f"[bold]test metrics:[/] {shown}")
 
 
@@ -206,6 +208,10 @@ def render_command(
         h = int(height or train_h)
         h, w = even_size(h, 2 * int(round(h * 2 / 3)) if persp else 2 * h)
         camera = pinhole_camera(h, w) if persp else equirect_camera(h, w)
+    from runfs.limits import pixels_problem
+
+    if problem := pixels_problem(h, w):  # before a frame of that size is allocated
+        raise PanoError("--height" if height else path, f"a frame {problem} (raise --max-megapixels if you mean it)")
     g = load_model(train.path(train.data.ply))
     target = output_path(run_path(engine.out_dir, "render"), path, "persp" if persp else "pano", overwrite=overwrite)
     res = render_flythrough(g, poses, camera, target, fps=fps, backend=backend, track=track)

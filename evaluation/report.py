@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from evaluation.report_text import fmt, html_text, md_text, missing_fields, url
 from evaluation.report_sections import (STAGE_SECTIONS, SectionContext, export_links, read_artifact,
                                         settings_section, settings_without_effect)
 from runfs.errors import PanoError
@@ -398,9 +399,9 @@ def per_view_table(doc: _Doc, d: dict) -> None:
     keys = [k for k in METRIC_LABELS if any(v.get(k) is not None for v in views)]
     extra = [("depth_valid_pixels", "depth px"), ("render_seconds", "render (s)")]
     extra = [(k, lbl) for k, lbl in extra if any(v.get(k) is not None for v in views)]
-    rows = [[v["view"], str(v.get("split", d.get("split", ""))), *[_fmt(v.get(k)) for k in keys],
-             *[_fmt(v.get(k)) for k, _ in extra]] for v in views]
-    rows.append(["mean", "", *[_fmt(d["mean"].get(k)) for k in keys], *["" for _ in extra]])
+    rows = [[v["view"], str(v.get("split", d.get("split", ""))), *[fmt(v.get(k)) for k in keys],
+             *[fmt(v.get(k)) for k, _ in extra]] for v in views]
+    rows.append(["mean", "", *[fmt(d["mean"].get(k)) for k in keys], *["" for _ in extra]])
     doc.table(["view", "split", *[METRIC_LABELS[k] for k in keys], *[lbl for _, lbl in extra]], rows)
     scored = [v for v in views if isinstance(v.get("psnr"), (int, float)) and math.isfinite(v["psnr"])]
     if len(scored) >= 2:
@@ -540,7 +541,7 @@ def ablation_side_by_side(ablation_json: Path, doc: _Doc, img_dir: Path, max_vie
         doc.images([(evals[0][1] / first["gt"], "ground truth")], f"ablate-{name}")
         for (v, edir, rows), depth in zip(evals, depths):
             r, tag = rows[name], v["key"]
-            items = [(edir / r["render"], f"{v['label']}: render, PSNR {r['psnr']:.2f} dB"),
+            items = [(edir / r["render"], f"{v['label']}: render, PSNR {fmt(r.get('psnr'), '.2f')} dB"),
                      (edir / r["error"], f"{v['label']}: |error|")]
             if depth is not None:
                 png = img_dir / f"ablate-{name}-{tag}-depth.png"
@@ -563,30 +564,14 @@ def _model_cost_line(tr: dict | None, ev: dict) -> str | None:
     proj = {"360": "360° splatting", "crops": "perspective crops", "cubemap": "cubemap"}.get(td.get("projection"),
                                                                                               td.get("projection"))
     how = f"test panoramas stitched from {ev['stitched']}" if ev.get("stitched") else "test panoramas rendered directly"
-    return (f"Model: {td['num_gaussians']:,} Gaussians after {td['iterations']:,} iterations "
-            f"(one training image each{f', from {images} training images' if images else ''}) "
-            f"in {td['train_seconds']:.1f} s of training; {proj}, {how}.")
-
-
-def _fmt(v, digits: int = 4) -> str:
-    if v is None:
-        return "—"
-    if isinstance(v, float):
-        if math.isnan(v):
-            return "—"
-        return f"{v:.{digits}g}"
-    return str(v)
-
-
-def md_text(text: str) -> str:
-    """Text for report.md: HTML in it (from artifacts, view names, notes) shown, not interpreted,
-    as report.html shows it (Markdown renders inline HTML)."""
-    return html.escape(str(text), quote=False)
+    return (f"Model: {fmt(td.get('num_gaussians'), ',')} Gaussians after {fmt(td.get('iterations'), ',')} "
+            f"iterations (one training image each{f', from {images} training images' if images else ''}) "
+            f"in {fmt(td.get('train_seconds'), '.1f')} s of training; {proj}, {how}.")
 
 
 class _Doc:
     """Builds the HTML and Markdown side by side so they always hold the same content; text goes
-    into both escaped (html.escape, md_text)."""
+    into both escaped (evaluation/report_text.py: html_text, md_text, url)."""
 
     def __init__(self, img_dir: Path):
         self.html: list[str] = []
@@ -595,38 +580,38 @@ class _Doc:
 
     def h(self, level: int, text: str, anchor: str | None = None) -> None:
         a = f' id="{anchor}"' if anchor else ""
-        self.html.append(f"<h{level}{a}>{html.escape(text)}</h{level}>")
+        self.html.append(f"<h{level}{a}>{html_text(text)}</h{level}>")
         self.md.append(f"\n{'#' * level} {md_text(text)}\n")
 
     def p(self, text: str, cls: str = "") -> None:
         c = f' class="{cls}"' if cls else ""
-        self.html.append(f"<p{c}>{html.escape(text)}</p>")
-        self.md.append(f"{'> ' if cls == 'warn' else ''}{md_text(text)}\n")
+        self.html.append(f"<p{c}>{html_text(text)}</p>")
+        self.md.append(f"{'> ' if cls == 'warn' else ''}{md_text(text, paragraph_start=True)}\n")
 
     def table(self, header: list[str], rows: list[list[str]]) -> None:
-        th = "".join(f"<th>{html.escape(h)}</th>" for h in header)
-        trs = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows)
+        th = "".join(f"<th>{html_text(h)}</th>" for h in header)
+        trs = "".join("<tr>" + "".join(f"<td>{html_text(c)}</td>" for c in r) + "</tr>" for r in rows)
         self.html.append(f"<table><thead><tr>{th}</tr></thead><tbody>{trs}</tbody></table>")
         self.md.append("| " + " | ".join(md_text(h) for h in header) + " |")
         self.md.append("|" + "---|" * len(header))
         for r in rows:
-            self.md.append("| " + " | ".join(md_text(c).replace("|", "\\|") for c in r) + " |")
+            self.md.append("| " + " | ".join(md_text(c) for c in r) + " |")
         self.md.append("")
 
     def details(self, summary: str, header: list[str], rows: list[list[str]]) -> None:
         """A table folded away under a one-line summary (<details>; GitHub's Markdown renders it too)."""
-        self.html.append(f"<details><summary>{html.escape(summary)}</summary>")
-        self.md.append(f"<details><summary>{html.escape(summary)}</summary>\n")
+        self.html.append(f"<details><summary>{html_text(summary)}</summary>")
+        self.md.append(f"<details><summary>{html_text(summary)}</summary>\n")
         self.table(header, rows)
         self.html.append("</details>")
         self.md.append("</details>\n")
 
     def links(self, items: list[tuple[str, str]]) -> None:
         """A bullet list of (relative href, text) links to files of the run."""
-        lis = "".join(f'<li><a href="{html.escape(href)}">{html.escape(text)}</a></li>' for href, text in items)
+        lis = "".join(f'<li><a href="{html.escape(url(href))}">{html_text(text)}</a></li>' for href, text in items)
         self.html.append(f"<ul>{lis}</ul>")
         for href, text in items:
-            self.md.append(f"- [{md_text(text)}]({href.replace(' ', '%20')})")
+            self.md.append(f"- [{md_text(text)}]({url(href)})")
         self.md.append("")
 
     def _embed(self, src: Path, name_prefix: str) -> tuple[str, str]:
@@ -652,20 +637,20 @@ class _Doc:
             if cbar is not None:
                 cb64, cb_name = self._embed(cbar[0], name_prefix)
                 alt = f"colour bar: {cbar[1]}"
-                extra = f'<img class="cbar" alt="{html.escape(alt)}" src="data:image/png;base64,{cb64}">'
-                md_extra = f"<br>![{md_text(alt)}]({self.img_dir.name}/{cb_name})"
+                extra = f'<img class="cbar" alt="{html_text(alt)}" src="data:image/png;base64,{cb64}">'
+                md_extra = f"<br>![{md_text(alt)}]({url(f'{self.img_dir.name}/{cb_name}')})"
             figs.append(
-                f'<figure><img alt="{html.escape(caption)}" src="data:image/png;base64,{b64}">{extra}'
-                f"<figcaption>{html.escape(caption)}</figcaption></figure>"
+                f'<figure><img alt="{html_text(caption)}" src="data:image/png;base64,{b64}">{extra}'
+                f"<figcaption>{html_text(caption)}</figcaption></figure>"
             )
-            mds.append(f"![{md_text(caption)}]({self.img_dir.name}/{dst_name}){md_extra}")
+            mds.append(f"![{md_text(caption)}]({url(f'{self.img_dir.name}/{dst_name}')}){md_extra}")
         cls = "row single" if len(figs) == 1 else "row"
         self.html.append(f'<div class="{cls}">' + "".join(figs) + "</div>")
         if any(len(i) > 2 and i[2] is not None for i in items):
             # maps with colour bars: one table cell each, so a bar stays under its map
-            self.md.append("| " + " | ".join(md_text(i[1]).replace("|", "\\|") for i in items) + " |")
+            self.md.append("| " + " | ".join(md_text(i[1]) for i in items) + " |")
             self.md.append("|" + "---|" * len(items))
-            self.md.append("| " + " | ".join(m.replace("|", "\\|") for m in mds) + " |\n")
+            self.md.append("| " + " | ".join(mds) + " |\n")
         else:
             self.md.append(" ".join(mds) + "\n")
 
@@ -687,15 +672,25 @@ details{margin:1em 0}details summary{cursor:pointer;color:#245}
 
 def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
                  states: dict[str, str] | None = None) -> ReportPaths:
-    """Write report.html (self-contained) and report.md (+ img/) into `out_dir` (default <run>/report/).
+    """Write report.html (self-contained) and report.md (+ img/, config.yaml) into `out_dir`
+    (default <run>/report/), whole or not at all: built in a temporary sibling folder that then
+    replaces the previous report (a full disk leaves the previous one as it was, not half a new one).
 
     `states` (stage -> up-to-date / stale / missing / skipped, from Engine.plan) adds a column
     saying whether each stage's result is current."""
+    from dataclasses import replace
+
+    from runfs.fsutil import atomic_folder
+
     run_dir = Path(run_dir)
-    out_dir = Path(out_dir) if out_dir is not None else run_path(run_dir, "report")
+    final = Path(out_dir) if out_dir is not None else run_path(run_dir, "report")
+    with atomic_folder(final) as tmp:
+        paths = _write_report(run_dir, scene, tmp, states)
+    return replace(paths, html=final / paths.html.name, markdown=final / paths.markdown.name, folder=final)
+
+
+def _write_report(run_dir: Path, scene, out_dir: Path, states: dict[str, str] | None) -> ReportPaths:
     img_dir = run_path(out_dir, "img")
-    if img_dir.exists():
-        shutil.rmtree(img_dir)
     img_dir.mkdir(parents=True)
     doc = _Doc(img_dir)
     sections: list[str] = []
@@ -735,13 +730,18 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
         if d.get("on_train_views"):
             doc.p("The scene has no test views: these numbers are measured on the TRAINING views.", "warn")
         per_view_table(doc, d)
+        missing = missing_fields(d.get("mean") or {}, ("psnr", "ssim", "ws_psnr"))
+        if missing:  # a model that diverged renders nothing measurable: say so, show the rest
+            doc.p(f"Missing from the evaluation (null or NaN in evaluate/artifact.json): {', '.join(missing)}; "
+                  "a model with NaN parameters renders nothing to measure: train it again.", "warn")
         if not d.get("lpips_available"):
             doc.p(f"LPIPS unavailable: {d.get('lpips_reason')}", "warn")
-        h, w = d["resolution"]
+        h, w = (list(d.get("resolution") or []) + ["?", "?"])[:2]
         doc.p(
-            f"Render speed {d['fps']:.2f} FPS (median of {d['fps_repeats']}) for a {w}×{h} panorama, "
-            f"backend {d['backend']} on {d['device']}, {d['threads']} torch threads, "
-            f"{d['num_gaussians']:,} Gaussians; evaluated at {w}×{h} on the {d['split']} split."
+            f"Render speed {fmt(d.get('fps'), '.2f')} FPS (median of {fmt(d.get('fps_repeats'))}) for a {w}×{h} "
+            f"panorama, backend {fmt(d.get('backend'))} on {fmt(d.get('device'))}, {fmt(d.get('threads'))} torch "
+            f"threads, {fmt(d.get('num_gaussians'), ',')} Gaussians; evaluated at {w}×{h} on the "
+            f"{fmt(d.get('split'))} split."
         )
         model_cost = _model_cost_line(read_artifact(run_dir, "train"), d)
         if model_cost:
@@ -757,8 +757,8 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
               "the same scale); black = nothing rendered / no depth. Depth error: "
               f"{DEPTH_ERROR_UNITS}, inferno, 0 … its 99th percentile; grey = no ground truth.", "note")
         scene_views = {sv.name: sv for sv in scene.views} if scene is not None else {}
-        for v in d["views"]:
-            doc.h(3, f"{v['view']} — PSNR {v['psnr']:.2f} dB, SSIM {v['ssim']:.3f}")
+        for v in d.get("views") or []:
+            doc.h(3, f"{v['view']} — PSNR {fmt(v.get('psnr'), '.2f')} dB, SSIM {fmt(v.get('ssim'), '.3f')}")
             items, notes = view_images(run_dir / "evaluate", v, scene, scene_views.get(v["view"]), img_dir)
             doc.images(items, f"view-{v['view']}")
             for n in notes:
@@ -773,15 +773,15 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
         td = tr["data"]
         reg_note = not_applied.get(("train", "layout_reg"))
         summary = [
-            ["iterations", _fmt(td.get("iterations"))], ["Gaussians", _fmt(td.get("num_gaussians"))],
-            ["training seconds", _fmt(td.get("train_seconds"))],
+            ["iterations", fmt(td.get("iterations"))], ["Gaussians", fmt(td.get("num_gaussians"))],
+            ["training seconds", fmt(td.get("train_seconds"))],
             ["resolution (H×W)", "×".join(str(x) for x in td.get("resolution", []))],
-            ["init", _fmt(td.get("init"))], ["projection", _fmt(td.get("projection"))],
+            ["init", fmt(td.get("init"))], ["projection", fmt(td.get("projection"))],
             ["layout regularisation",
-             _fmt(td.get("layout_reg")) + (f" (not applied: {reg_note})" if reg_note else "")],
-            ["λ layout", _fmt(td.get("lambda_layout"))],
-            ["preset", _fmt(td.get("preset"))], ["backend", _fmt(td.get("backend"))],
-            ["final train PSNR", _fmt(td.get("final_train_psnr"))],
+             fmt(td.get("layout_reg")) + (f" (not applied: {reg_note})" if reg_note else "")],
+            ["λ layout", fmt(td.get("lambda_layout"))],
+            ["preset", fmt(td.get("preset"))], ["backend", fmt(td.get("backend"))],
+            ["final train PSNR", fmt(td.get("final_train_psnr"))],
         ]
         doc.table(["setting", "value"], summary)
         series = training_series(read_jsonl(run_path(run_dir / "train", td.get("log") or "train_log.jsonl",
@@ -818,14 +818,14 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
     camera_labels[:] = labels
     drawn = bool(labels)
     if drawn and un is not None:
-        doc.p(f"Merged floor plan from the union stage ({_fmt(un['data'].get('area_m2'))} m²), every camera "
+        doc.p(f"Merged floor plan from the union stage ({fmt(un['data'].get('area_m2'))} m²), every camera "
               f"of the scene (train and test) from its poses.")
     elif drawn:
         doc.p("No union artifact (layout skipped or not run): cameras from the scene's poses, "
               "over the ground-truth rooms where the scene has them.", "note")
     elif union_png is not None and union_png.is_file():
         shutil.copyfile(union_png, plan)  # no scene given: the union stage's own drawing
-        doc.p(f"Merged floor plan from the union stage ({_fmt(un['data'].get('area_m2'))} m²) with the "
+        doc.p(f"Merged floor plan from the union stage ({fmt(un['data'].get('area_m2'))} m²) with the "
               "training cameras (no scene given: test cameras not drawn).")
         drawn = True
     if drawn:
@@ -859,7 +859,7 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
     if rows:
         sections.append("durations")
         header = ["stage", "last run (s)", "runs logged", "total logged (s)", "status", "warnings"]
-        body = [[r["stage"], _fmt(r["duration_s"]), str(r["runs"]), _fmt(r["total_s"]), r["status"], str(r["warnings"])]
+        body = [[r["stage"], fmt(r["duration_s"]), str(r["runs"]), fmt(r["total_s"]), r["status"], str(r["warnings"])]
                 for r in rows]
         if states:
             header.append("now")
@@ -897,7 +897,7 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
     out_dir.mkdir(parents=True, exist_ok=True)
     page = (
         "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
-        f"<title>pano-pipe report: {html.escape(name)}</title><style>{_CSS}</style></head><body>\n"
+        f"<title>pano-pipe report: {html_text(name)}</title><style>{_CSS}</style></head><body>\n"
         + "\n".join(doc.html)
         + "\n</body></html>\n"
     )

@@ -11,9 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-
-def _fmt(v: float | None, digits: int = 3) -> str:
-    return "—" if v is None else f"{v:.{digits}g}"
+from evaluation.report_text import fmt
 
 
 def plot_pair_graph(data: dict, path: Path) -> bool:
@@ -71,9 +69,10 @@ def add_poses_section(doc, run_dir: Path) -> bool:
     reason = data.get("method_reason") or ""
     doc.p(f"{placed} of {len(views)} views placed by {method}"
           + (f" (poses.method={data.get('requested_method')}: {reason})" if reason else "")
-          + f"; scale {_fmt(data.get('scale'), 4)} m per unit ± {100 * data.get('scale_uncertainty', 0):.2g} % "
+          + f"; scale {fmt(data.get('scale'), '.4g')} m per unit "
+            f"± {fmt(100 * (data.get('scale_uncertainty') or 0), '.2g')} % "
             f"from the {data.get('frame')}; {data.get('points', 0)} sparse points"
-          + (f", median angular residual {data['residual_deg']:.3f}°" if data.get("residual_deg") is not None
+          + (f", median angular residual {fmt(data['residual_deg'], '.3f')}°" if data.get("residual_deg") is not None
              else "") + ".")
     left_out = data.get("left_out") or {}
     if left_out:
@@ -90,7 +89,7 @@ def add_poses_section(doc, run_dir: Path) -> bool:
     attempts = data.get("attempts") or []
     if len(attempts) > 1:
         doc.table(["method", "placed", "seconds", "outcome"],
-                  [[a["method"], str(a["placed"]), f"{a['seconds']:.1f}", a.get("failure") or "placed"]
+                  [[a["method"], str(a["placed"]), fmt(a.get('seconds'), '.1f'), a.get("failure") or "placed"]
                    for a in attempts])
     pairs = data.get("pairs") or []
     if pairs:
@@ -99,5 +98,5 @@ def add_poses_section(doc, run_dir: Path) -> bool:
                     "yes" if p["used"] else "no"] for p in pairs])
     doc.table(["view", "placed", "given", "observations", "residual (px)"],
               [[v["view"], "yes" if v.get("registered") else "no", "yes" if v.get("given") else "no",
-                str(v.get("observations", 0)), _fmt(v.get("reprojection_error_px"))] for v in views])
+                str(v.get("observations", 0)), fmt(v.get("reprojection_error_px"), '.3g')] for v in views])
     return True

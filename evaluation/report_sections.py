@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from evaluation.report_text import fmt
+
 __all__ = ["SectionContext", "STAGE_SECTIONS", "layout_section", "depth_alignment_section",
            "settings_without_effect", "settings_section", "export_links", "stage_file"]
 
@@ -51,16 +53,6 @@ def stage_file(run_dir: Path, stage: str, name) -> Path | None:
         return None
     path = Path(run_dir) / stage / name
     return path if path.is_file() else None
-
-
-def _fmt(v, digits: int = 4) -> str:
-    if v is None:
-        return "—"
-    if isinstance(v, bool):
-        return "yes" if v else "no"
-    if isinstance(v, float):
-        return f"{v:.{digits}g}" if math.isfinite(v) else str(v)
-    return str(v)
 
 
 # ----------------------------------------------------------------------------- layout
@@ -188,11 +180,11 @@ def depth_alignment_section(doc, ctx: SectionContext) -> str | None:
     doc.h(2, "Depth alignment", "alignment")
     if not d.get("aligned_to_layout"):
         doc.p("The depth was not aligned to a layout (no layout in this run): it is used at its own "
-              f"scale ({_fmt(d.get('scale'))}).", "warn")
+              f"scale ({fmt(d.get('scale'))}).", "warn")
     else:
         share, residual = d.get("inlier_share"), d.get("residual_m")
-        doc.p(f"Depth scaled by {_fmt(d.get('scale'))}"
-              + (f", shift {_fmt(d.get('shift'))}" if d.get("shift") else "")
+        doc.p(f"Depth scaled by {fmt(d.get('scale'))}"
+              + (f", shift {fmt(d.get('shift'))}" if d.get("shift") else "")
               + (f"; {100 * share:.1f}% of the labelled pixels agree with the layout"
                  if isinstance(share, float) else "")
               + (f"; median residual {100 * residual:.2g} cm on them" if isinstance(residual, float) else "")
@@ -203,10 +195,10 @@ def depth_alignment_section(doc, ctx: SectionContext) -> str | None:
         for f in fits:
             share, residual = f.get("inlier_share"), f.get("residual_m")
             rows.append([", ".join(map(str, f.get("views", []))), str(f.get("kind", "")),
-                         _fmt(f.get("scale")), _fmt(f.get("layout_fit_scale")), _fmt(f.get("icp_factor")),
+                         fmt(f.get("scale")), fmt(f.get("layout_fit_scale")), fmt(f.get("icp_factor")),
                          f"{100 * share:.1f}%" if isinstance(share, (int, float)) else "—",
                          f"{100 * residual:.2g}" if isinstance(residual, (int, float)) else "—",
-                         _fmt(f.get("icp_fitness")), _fmt(f.get("num_pixels"))])
+                         fmt(f.get("icp_fitness")), fmt(f.get("num_pixels"))])
         doc.table(["views", "depth kind", "scale", "layout-fit scale", "ICP factor", "inliers",
                    "residual (cm)", "ICP fitness", "pixels fitted"], rows)
         doc.p("scale = layout-fit scale × ICP factor. Inliers: labelled pixels whose depth agrees with the "
