@@ -598,9 +598,11 @@ def _register_commands() -> None:
     from layoutnet.command import export_layout_model_command
     from export.command import export_command
     from models.command import models_app
+    from pipeline.new_scene import new_command
     from simulate.command import simulate_command
     from viewer.command import view_command
 
+    app.command("new")(new_command)
     app.command("simulate")(user_errors(simulate_command))
     app.command("export-layout-model")(export_layout_model_command)
     app.command("export-depth-model")(export_depth_model_command)
