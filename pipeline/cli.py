@@ -169,8 +169,9 @@ def run(
     connect_timeout: Annotated[float, typer.Option(
         "--connect-timeout", min=0.1, help="Ray: seconds to wait for the cluster at --address.")] = 30.0,
 ) -> None:
-    """Run the pipeline (`all`) or one stage (rerun, with anything stale upstream), on one scene
-    or a batch of scenes (exit code 1 when any scene failed)."""
+    """Run the pipeline (`all`) or one stage (with anything stale upstream; up-to-date stages are
+    reported cached, --force reruns them), on one scene or a batch of scenes (exit code 1 when any
+    scene failed)."""
     from batch.scenes import expand_scenes, is_batch
 
     if is_batch(scenes) or executor != "local" or address is not None:
@@ -224,7 +225,7 @@ def run_header(engine) -> str:
 def print_run_summary(engine, scene_arg: Path, finished: list[str], flags: str = "",
                       ran: list[str] | None = None) -> None:
     """After a run: what the poses stage found (when it ran), the model, its size, per-view test
-    metrics and the report command (with the flags this run was given)."""
+    metrics and the next steps (report with the flags this run was given, view, export)."""
     import shlex
 
     from pipeline.engine import read_output
@@ -255,8 +256,14 @@ def print_run_summary(engine, scene_arg: Path, finished: list[str], flags: str =
             table.add_row(escape(v.view), *(_metric(getattr(v, c)) for c in cols))
         table.add_row("[bold]mean[/]", *(_metric(ev.mean.get(c)) for c in cols))
         console.print(table)
-        console.print(escape(f"render speed: {ev.fps:.1f} FPS at {h}x{w}; "
-                             f"report: pano-pipe report {shlex.quote(str(scene_arg))}{flags}"), soft_wrap=True)
+        console.print(escape(f"render speed: {ev.fps:.1f} FPS at {h}x{w}"), soft_wrap=True)
+    if train is not None:
+        scene_q, out_q = shlex.quote(str(scene_arg)), shlex.quote(str(out))
+        console.print("next steps:")
+        for command, what in ((f"pano-pipe report {scene_q}{flags}", "the HTML report: metrics, timings, settings"),
+                              (f"pano-pipe view {scene_q} --out {out_q}", "the model in the browser"),
+                              (f"pano-pipe export {out_q} --format ply", "for other viewers (also splat, spz, mesh)")):
+            console.print(escape(f"  {command}    # {what}"), soft_wrap=True)
 
 
 def _metric(value: float | None) -> str:

@@ -23,7 +23,7 @@ from pydantic import BaseModel, ValidationError
 from rich.markup import escape
 
 from pipeline.console import console, track
-from runfs.errors import PanoError, describe_validation_error, did_you_mean
+from runfs.errors import PanoError, describe_validation_error, did_you_mean, read_json
 from runfs.fsutil import append_line, atomic_folder, remove_stale_temporaries, run_folder_lock, sha256_file, sha256_json
 from runfs.paths import check_run_folder, mark_run_folder, run_path
 from pipeline.stage import Loaded, StageContext, StageSpec
@@ -96,12 +96,10 @@ def read_meta(stage_dir: Path) -> ArtifactMeta | None:
 
 def _validated(path: Path, output: type[BaseModel]) -> Artifact:
     """The artifact at `path`, validated against `output`; PanoError naming the file otherwise."""
+    if not path.exists():
+        raise PanoError(path, "missing; run the stage first")
     try:
-        return Artifact[output].model_validate_json(path.read_bytes())
-    except FileNotFoundError:
-        raise PanoError(path, "missing; run the stage first") from None
-    except OSError as e:
-        raise PanoError(path, f"cannot read: {e.strerror or e}") from None
+        return Artifact[output].model_validate(read_json(path))
     except ValidationError as e:
         raise describe_validation_error(path, e) from None
 
@@ -171,8 +169,10 @@ def stale_reason(meta: ArtifactMeta, plan: StagePlan, params_json: dict, scene_h
 
 
 def forced(name: str, target: str | None, force: bool, force_upstream: bool) -> bool:
-    """Whether a run reruns `name` even if it is up to date (Engine.run's rule)."""
-    return name == target or force_upstream or (force and target is None)
+    """Whether a run reruns `name` even if it is up to date (Engine.run's rule): `force` reruns the
+    named stage (every stage without one), `force_upstream` every stage the run touches; a named
+    stage that is up to date is otherwise reported cached, as `--force`'s help says."""
+    return force_upstream or (force and (target is None or name == target))
 
 
 def select_stages(registry: dict[str, StageSpec], target: str | None = None, until: str | None = None) -> list[str]:

@@ -64,9 +64,13 @@ def test_bad_run_folders_are_refused_in_one_line(tmp_path, run_copy, capsys):
     ply.write_bytes(ply.read_bytes()[:5000])
     _one_line_error(*run_cli(["export", run_copy, "--format", "spz"], capsys), "truncated")
     # a broken artifact
-    (run_copy / "train" / "artifact.json").write_text("{not json")
+    artifact = run_copy / "train" / "artifact.json"
+    valid = json.loads(artifact.read_text())
+    artifact.write_text("{not json")
     _one_line_error(*run_cli(["export", run_copy, "--format", "ply"], capsys), "invalid JSON")
-    (run_copy / "train" / "artifact.json").write_text(json.dumps({"data": {"ply": "../../etc/passwd"}}))
+    artifact.write_text(json.dumps({"data": {"ply": "point_cloud.ply"}}))
+    _one_line_error(*run_cli(["export", run_copy, "--format", "ply"], capsys), "meta")
+    artifact.write_text(json.dumps({**valid, "data": {**valid["data"], "ply": "../../etc/passwd"}}))
     _one_line_error(*run_cli(["export", run_copy, "--format", "ply"], capsys), "data.ply")
     assert not (run_copy / "export").exists()
 

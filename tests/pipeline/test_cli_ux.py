@@ -112,6 +112,21 @@ def test_run_prints_a_header_and_a_summary_with_per_view_metrics(run, capsys):
     assert "model: " in out and "point_cloud.ply" in out and "Gaussians" in out
     assert "test_00" in out and "test_01" in out and "mean" in out  # one row per test view
     assert f"pano-pipe report {run / 'S'} --out {run / 'R'}" in " ".join(out.split())
+    next_steps = out[out.index("next steps:"):]  # after the summary, each a command to copy
+    assert f"pano-pipe view {run / 'S'} --out {run / 'R'}" in next_steps
+    assert f"pano-pipe export {run / 'R'} --format ply" in next_steps
+
+
+def test_an_up_to_date_named_stage_is_cached_unless_forced(run, capsys):
+    code, out, err = run_cli(["run", "evaluate", run / "S", "--out", run / "R", *FAST], capsys)
+    assert code == 0, err
+    rows = outcomes(out)
+    assert rows["evaluate"] == "cached" and set(rows.values()) <= {"cached", "skipped"}
+    import typer
+
+    run_command = typer.main.get_command(cli.app).commands["run"]
+    force_help = next(p.help for p in run_command.params if p.name == "force")
+    assert "even if it is up to date" in force_help and "reported cached" in run_command.help  # as it behaved
 
 
 def test_plain_progress_prints_periodic_lines(capsys):

@@ -145,13 +145,15 @@ def test_skip_rules_required_and_optional(tiny_scene, tmp_path):
     assert plans["c"].reason == "needs b, which is skipped"
 
 
-def test_target_is_forced_upstream_only_if_stale(tiny_scene, tmp_path):
+def test_an_up_to_date_target_is_cached_and_force_reruns_it_alone(tiny_scene, tmp_path):
     out = tmp_path / "run"
     engine(tiny_scene, out).run()
     CALLS.clear()
     results = engine(tiny_scene, out).run(target="b")
+    assert dict(CALLS) == {} and [(r.name, r.outcome) for r in results] == [("a", "cached"), ("b", "cached")]
+    results = engine(tiny_scene, out).run(target="b", force=True)
     assert dict(CALLS) == {"b": 1}
-    assert [r.name for r in results] == ["a", "b"]
+    assert [(r.name, r.outcome) for r in results] == [("a", "cached"), ("b", "ran")]
 
 
 def test_until_and_force(tiny_scene, tmp_path):

@@ -404,7 +404,7 @@ def test_full_disk_is_one_line_naming_the_stage(finished, capsys, monkeypatch):
     build_registry.cache_clear()
     try:
         before = tree(finished / "R" / "union")
-        code, out = run_cli(["run", "union", finished / "S", "--out", finished / "R"], capsys)
+        code, out = run_cli(["run", "union", finished / "S", "--out", finished / "R", "--force"], capsys)
         assert_one_line(code, out, "union", "No space left on device")
         assert tree(finished / "R" / "union") == before
         assert not [p for p in (finished / "R").iterdir() if p.name.startswith(".tmp-")]
