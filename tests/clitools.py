@@ -43,3 +43,23 @@ def without_kernel_notices(err: str) -> str:
     """stderr less the splatting kernel's one-time compile notices ("splatting: ..."), which
     the first render on a machine prints whatever command runs it."""
     return "".join(line for line in err.splitlines(keepends=True) if not line.startswith("splatting: "))
+
+
+def run_on_full_disk(args, budget: int, cwd) -> tuple[int, str, str]:
+    """`pano-pipe ARGS` in a child process whose every file write past `budget` bytes fails (EFBIG, as
+    on a disk that fills up): (exit code, stdout, stderr), read through pipes, which the limit does
+    not touch (pytest's capture files would be)."""
+    import os
+    import resource
+    import signal
+    import subprocess
+    from pathlib import Path
+
+    def limit():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (budget, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+
+    proc = subprocess.run([sys.executable, "-c", "from pipeline.cli import main; main()", *map(str, args)],
+                          cwd=cwd, preexec_fn=limit, capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    return proc.returncode, proc.stdout, proc.stderr

@@ -86,3 +86,16 @@ def colmap_cameras(width: int, height: int, cameras: int = 1) -> bytes:
     """cameras.bin with one EQUIRECTANGULAR camera (model 17, 2 parameters) of width x height;
     `cameras` is the count the file claims."""
     return struct.pack("<Q", cameras) + struct.pack("<iiQQ2d", 1, 17, width, height, width, height)
+
+
+def nan_model(ply_path) -> None:
+    """Turn a binary little-endian float PLY model (ours) into one whose training diverged: every
+    7th value NaN, every 11th Inf, the file's size unchanged (its artifact still matches it)."""
+    from pathlib import Path
+
+    data = Path(ply_path).read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    values = np.frombuffer(data[end:], "<f4").copy()
+    values[::7] = np.nan
+    values[3::11] = np.inf
+    Path(ply_path).write_bytes(data[:end] + values.tobytes())

@@ -285,6 +285,6 @@ def test_a_missing_exporter_is_said_before_any_download(registry):
     reg.write_text(yaml.safe_dump(yaml.safe_load(reg.read_text()) + [
         {"name": "horizonnet-noexport", "kind": "layout", "host": "url", "source": f"{server.url}/standin.pth",
          "filename": "noexport.pth", "exporter": "layoutnet.nowhere:export"}]))
-    with pytest.raises(PanoError, match="model exporter not available"):
+    with pytest.raises(PanoError, match="exporter 'layoutnet.nowhere:export' is not one pano-pipe calls"):
         fetch("horizonnet-noexport", log=lambda m: None)
     assert server.requests == [] and not (cache / "noexport.pth").exists()

@@ -196,21 +196,12 @@ def test_no_numpy_warnings_on_stderr(run, tmp_path, capsys):
     code, out, err = invoke(["import-colmap", model, tmp_path / "images", tmp_path / "out", "--scale", "1e300"],
                             capsys)
     assert_one_line(code, out, err, "over 100000 m")
-    # a model with NaN colours exports fine, silently
-    from gaussians.ply import load_ply, save_ply
-
+    # a model with NaN colours: refused in one line, no numpy warning (issue 37, item 2)
     ply = run / "R" / "train" / "point_cloud.ply"
-    g = load_ply(ply)
-    g.sh_dc[:] = float("nan")
-    g.log_scales[:] = float("nan")
-    save_ply(ply, g)
-    art = run / "R" / "train" / "artifact.json"
-    doc = json.loads(art.read_text())
-    doc["meta"]["files"]["point_cloud.ply"] = ply.stat().st_size
-    art.write_text(json.dumps(doc))
+    hostile.nan_model(ply)
     for fmt in ("splat", "spz"):
         code, out, err = invoke(["export", run / "R", "--format", fmt], capsys)
-        assert code == 0 and err == "", err
+        assert_one_line(code, out, err, "point_cloud.ply", "NaN")
 
 
 # ----------------------------------------------------------------------------- 10. a batch names run folders as a run does
