@@ -19,7 +19,6 @@ from pipeline import signals  # noqa: E402
 signals.guard_imports()
 
 import json  # noqa: E402
-import shutil
 import sys
 from pathlib import Path
 from typing import Annotated, Optional
@@ -32,8 +31,7 @@ from rich.markup import escape
 
 from pipeline.console import console, err_console
 from runfs.errors import PanoError, did_you_mean
-from runfs.fsutil import LOCK_NAME, run_folder_lock
-from runfs.paths import check_run_folder, default_run_folder, is_run_folder
+from runfs.paths import default_run_folder
 from schemas.scene import REAL_CAPTURE_NADIR_DEG
 
 app = typer.Typer(
@@ -358,31 +356,6 @@ def status(scene: SceneArg, out: OutOpt = None, config: ConfigOpt = None, set_: 
 
 
 @app.command()
-def clean(scene: SceneArg, out: OutOpt = None) -> None:
-    """Delete the scene's run folder."""
-    from schemas.scene_loader import load_scene
-
-    s = load_scene(scene, check_images=False)
-    out_dir = out if out is not None else default_run_folder(s.name, s.root)
-    if not out_dir.exists():
-        console.print(f"nothing to clean: {escape(str(out_dir))} does not exist", soft_wrap=True)
-        return
-    if out_dir.is_symlink():  # deleting through it would empty the target and leave the link
-        raise PanoError(out_dir, f"is a symbolic link (to {os.readlink(out_dir)}); name the run folder itself")
-    check_run_folder(out_dir, s.root, links_ok=True)
-    if not is_run_folder(out_dir):  # an empty folder: nothing of ours to delete
-        console.print(f"nothing to clean: {escape(str(out_dir))} holds no pano-pipe run", soft_wrap=True)
-        return
-    with run_folder_lock(out_dir):
-        for child in out_dir.iterdir():  # the lock file last: it is held until the end
-            if child.name != LOCK_NAME:
-                shutil.rmtree(child) if child.is_dir() and not child.is_symlink() else child.unlink()
-    (out_dir / LOCK_NAME).unlink(missing_ok=True)
-    out_dir.rmdir()
-    console.print(f"removed {escape(str(out_dir))}", soft_wrap=True)
-
-
-@app.command()
 def schema(out: Annotated[Path, typer.Argument(help="Folder to write the JSON Schemas into.")]) -> None:
     """Write the JSON Schema of scene.json and of every stage artifact."""
     from pipeline.registry import all_schemas
@@ -605,11 +578,13 @@ def _register_commands() -> None:
     from layoutnet.command import export_layout_model_command
     from export.command import export_command
     from models.command import models_app
+    from pipeline.clean import clean_command
     from pipeline.new_scene import new_command
     from simulate.command import simulate_command
     from viewer.command import view_command
 
     app.command("new")(new_command)
+    app.command("clean")(clean_command)
     app.command("simulate")(user_errors(simulate_command))
     app.command("export-layout-model")(export_layout_model_command)
     app.command("export-depth-model")(export_depth_model_command)

@@ -441,7 +441,7 @@ def run_args(until: str | None = "align", command: str = "run-all") -> list[str]
     if command == "status":
         return ["status", "<SCENE>", "--out", "<RUN>", *BASE_SET]
     if command == "clean":
-        return ["clean", "<SCENE>", "--out", "<RUN>"]
+        return ["clean", "<SCENE>", "--out", "<RUN>", "--yes"]
     if command.startswith("run-stage-"):
         return ["run", command.removeprefix("run-stage-"), "<SCENE>", "--out", "<RUN>", *BASE_SET]
     extra = ["--until", until] if until else []

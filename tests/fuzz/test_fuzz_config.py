@@ -158,7 +158,7 @@ def test_hostile_out_folder(out, command, fuzz_base, tmp_path, capfd):
         if command == "run":
             args = ["run", "all", "<SCENE>", "--out", out, "--until", "layout", *BASE_SET]
         else:
-            args = ["clean", "<SCENE>", "--out", out]
+            args = ["clean", "<SCENE>", "--out", out, "--yes"]
         run_example(sb, args, capfd, (out, command), "out")
 
 
@@ -192,5 +192,5 @@ def test_run_folder_symlinks(case, command, fuzz_base, tmp_path, capfd):
         if command == "run":
             args = ["run", "all", "<SCENE>", "--out", "<RUN>", "--until", "depth", *BASE_SET]
         else:
-            args = ["clean", "<SCENE>", "--out", "<RUN>"]
+            args = ["clean", "<SCENE>", "--out", "<RUN>", "--yes"]
         run_example(sb, args, capfd, (case, command), "run-folder-links")

@@ -117,7 +117,7 @@ def test_clean_deletes_only_run_folders(finished, capsys):
     code, out = run_cli(["clean", finished / "S", "--out", finished / "S"], capsys)
     assert_one_line(code, out, "the run folder is the scene folder")
     assert (finished / "S" / "scene.json").is_file()
-    code, out = run_cli(["clean", finished / "S", "--out", finished / "R"], capsys)
+    code, out = run_cli(["clean", finished / "S", "--out", finished / "R", "--yes"], capsys)
     assert code == 0 and not (finished / "R").exists()
 
 

@@ -39,7 +39,7 @@ COMMANDS: dict[str, list[str]] = {
     "export-mesh": ["export", "<R>", "--format", "mesh", "--mesh-height", "16", "--mesh-depth", "5"],
     "sweep": ["sweep", "<S>", "--out", "<R>", "--iterations", "3", "--heights", "8", "--caps", "default"],
     "view": ["view", "<R>", "--port", "<PORT>"],
-    "clean": ["clean", "<S>", "--out", "<R>"],
+    "clean": ["clean", "<S>", "--out", "<R>", "--yes"],
 }
 
 _recording: list[str] | None = None
