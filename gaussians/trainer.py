@@ -18,11 +18,8 @@ before it changes anything, so a bad one leaves the trainer as it was.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
-import os
-import pickle
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
@@ -31,21 +28,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
-import splatting
+from gaussians import checkpoint
 from gaussians.appearance import Appearance
-from gaussians.crop_loss import CropResampler, crop_photometric_loss
-from gaussians.densify import DensifyStats, densify_and_prune, gradient_scale, reset_opacity
-from gaussians.losses import layout_loss, photometric_loss, psnr, psnr_tensor, solid_angle_weight
-from gaussians.mip_filter import DEFAULT_VARIANCE, filter_variance, filtered, reset_cap_logits, sampling_rate
+from gaussians.checkpoint import CHECKPOINT_NAME, plain_number
+from gaussians.densify import DensifyStats
+from gaussians.losses import psnr, psnr_tensor
+from gaussians.mip_filter import DEFAULT_VARIANCE, filter_variance, filtered, sampling_rate
 from gaussians.model import DEFAULT_EPS2D, PARAM_NAMES, Gaussians, render
+from gaussians.objective import TrainingObjective
 from gaussians.optim import Adam, expon_lr
+from gaussians.strategy import DensifyStrategy
 from gaussians.view_jitter import TurnGrid, random_turn, turn_panorama
 
 __all__ = ["TrainConfig", "TrainView", "Trainer", "scene_extent", "CHECKPOINT_NAME"]
-
-CHECKPOINT_NAME = "checkpoint.pt"
-CHECKPOINT_VERSION = 3  # 2: numpy RNG state as plain data (weights_only loading); 3: appearance
-
 
 @dataclass
 class TrainConfig:
@@ -226,7 +221,8 @@ class Trainer:
             "means": lr_means, "quats": cfg.lr_rotation, "log_scales": cfg.lr_scaling,
             "opacity_logits": cfg.lr_opacity, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_rest,
         })
-        self.stats = DensifyStats.zeros(len(self.g), dtype=self.g.means.dtype, device=self.device)
+        self.strategy = DensifyStrategy.from_config(cfg, self.g)
+        self.objective = TrainingObjective(cfg, self.views, self.device)
         self.gen = torch.Generator().manual_seed(int(cfg.seed))
         self.iteration = 0
         self.active_sh = 0
@@ -237,11 +233,9 @@ class Trainer:
         self.nonfinite_steps = 0
         self.log_path = log_path
         self._bg = torch.tensor(cfg.background, dtype=self.g.means.dtype, device=self.device)
-        self._has_layout: bool | None = None  # cached: asking the device every iteration would sync
-        self._layout_rows: tuple[torch.Tensor, ...] = ()
         self.last_loss: float | None = None
         #: Per-panorama colour transforms (None: off); applied to training renders only.
-        self.appearance = self._new_appearance()
+        self.appearance = self.new_appearance()
         #: Extra identity a checkpoint must match (e.g. a hash of the initial model and images).
         self.extra_fingerprint = ""
         self._in_step = False
@@ -249,13 +243,9 @@ class Trainer:
         #: timed on the CPU (free there), None = not timed (a CUDA step would wait for the
         #: device at every part; set it to {} to time one anyway).
         self.part_seconds: dict[str, float] | None = {} if self.device.type == "cpu" else None
-        self._weights: dict[tuple[int, int], torch.Tensor] = {}
-        self._resamplers: dict = {}
-        self._crops: dict = {}
-        self._centres: torch.Tensor | None = None
         self._turn_grids: dict[tuple[int, int], TurnGrid] = {}
 
-    def _new_appearance(self) -> Appearance | None:
+    def new_appearance(self) -> Appearance | None:
         if not self.cfg.appearance:
             return None
         names = list(dict.fromkeys(Appearance.panorama_of(v.name) for v in self.views))
@@ -264,29 +254,6 @@ class Trainer:
     def _as_trained(self, view: TrainView, image: torch.Tensor) -> torch.Tensor:
         """A render as the loss sees it: through the view's appearance transform, when on."""
         return image if self.appearance is None else self.appearance.apply(view.name, image)
-
-    def _crop_targets(self, view: TrainView):
-        """(resampler, ground-truth crops, crop masks) of a panorama view when crop_loss is on, else None."""
-        if not self.cfg.crop_loss or getattr(view.camera, "kind", None) != "equirect":
-            return None
-        hit = self._crops.get(view.name)
-        if hit is None:
-            key = (int(view.camera.height), int(view.camera.width))
-            rs = self._resamplers.get(key)
-            if rs is None:
-                rs = self._resamplers[key] = CropResampler(*key, dtype=view.image.dtype, device=self.device)
-            with torch.no_grad():
-                gt = rs(view.image)
-                m = None if view.mask is None else rs(view.mask[..., None].to(view.image.dtype))[:, 0] > 0.999
-            hit = self._crops[view.name] = (rs, gt, m)
-        return hit
-
-    def _camera_centres(self) -> torch.Tensor:
-        """[P,3] distinct camera centres of the training views (a panorama's crops share one)."""
-        if self._centres is None:
-            c = torch.stack([-(v.viewmat[:3, :3].T @ v.viewmat[:3, 3]) for v in self.views])
-            self._centres = torch.unique(torch.round(c, decimals=6), dim=0)
-        return self._centres
 
     def _drawn(self) -> Gaussians:
         """The Gaussians every render draws: the model, through the 3D smoothing filter when on.
@@ -299,35 +266,6 @@ class Trainer:
             g = filtered(g, filter_variance(rate, self.cfg.mip_filter_variance), self.cfg.mip_filter_keep_integral)
         # drawn with the training dilation, which the exported model keeps (Gaussians.eps2d)
         return g if g.eps2d == self.cfg.eps2d else replace(g, eps2d=self.cfg.eps2d)
-
-    def _coverage_loss(self, g: Gaussians) -> torch.Tensor:
-        """mean(1 − alpha) of a coverage_height × 2·coverage_height panorama from a random point of
-        the segment between two training cameras (horizontally jittered): pushes holes between
-        splats, which only a new viewpoint shows, to close."""
-        cfg = self.cfg
-        c = self._camera_centres()
-        i, j = torch.randint(len(c), (2,), generator=self.gen).tolist()
-        u, jx, jz = torch.rand(3, generator=self.gen, dtype=torch.float64).tolist()
-        pos = c[i] + u * (c[j] - c[i])
-        pos = pos + pos.new_tensor([2 * jx - 1, 0.0, 2 * jz - 1]) * cfg.coverage_jitter * cfg.extent
-        viewmat = torch.eye(4, dtype=self.g.means.dtype, device=self.device)
-        viewmat[:3, 3] = -pos.to(viewmat.dtype)
-        h = int(cfg.coverage_height)
-        out = render(g, viewmat, splatting.EquirectCamera(h, 2 * h), backend=cfg.backend,
-                     background=self._bg, sh_degree=0)
-        return (1.0 - out.alpha).mean()
-
-    def _pixel_weight(self, view: TrainView) -> torch.Tensor | None:
-        """The per-pixel loss weight of `view`: its pixels' solid angle for a panorama when
-        solid_angle_weighting is on, else None (a plain mean)."""
-        cam = view.camera
-        if not self.cfg.solid_angle_weighting or getattr(cam, "kind", None) != "equirect":
-            return None
-        key = (int(cam.height), int(cam.width))
-        w = self._weights.get(key)
-        if w is None:
-            w = self._weights[key] = solid_angle_weight(*key, dtype=view.image.dtype, device=self.device)
-        return w
 
     def _turned(self, view: TrainView) -> TrainView:
         """`view` with its camera frame turned by a random rotation R, the ground truth and mask
@@ -355,126 +293,83 @@ class Trainer:
             self.stack = torch.randperm(len(self.views), generator=self.gen).tolist()
         return self.views[self.stack.pop()]
 
+    @property
+    def stats(self) -> DensifyStats:
+        """The densification statistics (the strategy's state)."""
+        return self.strategy.stats
+
     def step(self) -> dict:
+        """One iteration (the module docstring's steps 1-5)."""
         self._in_step = True  # cleared only when the whole iteration is done (see _consistent)
-        cfg = self.cfg
-        self.iteration += 1
-        it = self.iteration
-        self.opt.lrs["means"] = expon_lr(it, cfg.lr_position_init * cfg.extent, cfg.lr_position_final * cfg.extent,
-                                         cfg.iterations)
-        if cfg.sh_degree_every > 0 and it % cfg.sh_degree_every == 0:
-            self.active_sh = min(self.active_sh + 1, cfg.sh_degree, self.g.sh_degree)
+        cfg, it = self.cfg, self.iteration + 1
+        self.iteration = it
+        self._schedule(it)
         view = self._next_view()
         if cfg.random_turns and getattr(view.camera, "kind", None) == "equirect":
             view = self._turned(view)
-        g = self.g
         lap = _Laps(self.part_seconds, self.device)
         bg = self._bg
         if cfg.random_background:
             bg = torch.rand(3, generator=self.gen, dtype=self._bg.dtype).to(self.device)
         drawn = self._drawn()
-        out = render(drawn, view.viewmat, view.camera, backend=cfg.backend, background=bg,
-                     sh_degree=self.active_sh)
+        out = render(drawn, view.viewmat, view.camera, backend=cfg.backend, background=bg, sh_degree=self.active_sh)
         lap("render")
         pred = self._as_trained(view, out.image)
-        crops = self._crop_targets(view)
-        if crops is not None:
-            photo, l1, s = crop_photometric_loss(pred, crops[1], crops[0], cfg.lambda_l1, cfg.lambda_dssim, crops[2])
-        else:
-            photo, l1, s = photometric_loss(pred, view.image, cfg.lambda_l1, cfg.lambda_dssim, mask=view.mask,
-                                            weight=self._pixel_weight(view))
-        loss = photo
-        if cfg.lambda_scale > 0:
-            loss = loss + cfg.lambda_scale * torch.exp(g.log_scales).mean() / cfg.extent
-        if self.appearance is not None and cfg.lambda_appearance > 0:
-            loss = loss + cfg.lambda_appearance * self.appearance.regulariser()
-        if self.appearance is not None and cfg.lambda_appearance_gauge > 0:
-            loss = loss + cfg.lambda_appearance_gauge * self.appearance.gauge()
-        cov = None
-        if cfg.lambda_coverage > 0:
-            cov = self._coverage_loss(drawn)
-            loss = loss + cfg.lambda_coverage * cov
-        lay = None
-        if self._has_layout is None:
-            self._has_layout = bool(g.is_layout.any())
-            # the layout Gaussians' rows, anchors and normals change only with densification:
-            # selected once, not by the mask at every step
-            idx = torch.nonzero(g.is_layout).squeeze(1)
-            self._layout_rows = (idx, g.u0[idx], g.normals[idx])
-        if cfg.layout_reg and cfg.lambda_layout > 0 and self._has_layout:
-            idx, u0, normals = self._layout_rows
-            lay = layout_loss(g.means[idx], u0, normals)
-            loss = loss + cfg.lambda_layout * lay
+        terms = self.objective(self.g, drawn, pred, view, self.appearance, self._bg, self.gen)
         if out.means2d.requires_grad:
             out.means2d.retain_grad()
         lap("losses")
-        loss.backward()
+        terms.loss.backward()
         lap("backward")
-
         with torch.no_grad():
-            # on the device, without a host sync: counted here, read by the log
-            grads = [p.grad for p in (getattr(g, k) for k in PARAM_NAMES) if p.grad is not None and p.grad.numel()]
-            finite = _all_finite(grads)
-            self.nonfinite_steps = self.nonfinite_steps + (~finite).long()
-            # on the CPU reading the flag costs nothing, and saves a pass over every gradient
-            if self.device.type != "cpu" or not bool(finite):
-                for gr in grads:
-                    torch.nan_to_num_(gr, nan=0.0, posinf=0.0, neginf=0.0)
-            self.opt.step(g)
-            if self.appearance is not None:
-                self.appearance.step()
-            Adam.zero_grad(g)
-            # quaternions: keep them away from zero (the renderer copes, Adam's steps would not)
-            qn = torch.linalg.vector_norm(g.quats, dim=-1, keepdim=True)
-            g.quats.copy_(torch.where(qn > 1e-8, g.quats, g.quats.new_tensor([1.0, 0, 0, 0])))
-            if cfg.max_anisotropy is not None:
-                clamp_anisotropy_(g.log_scales, cfg.max_anisotropy)
+            self._optimiser_step()
             lap("optimiser")
-
-            if it < cfg.densify_until:
-                self.stats.add(out.means2d.grad if out.means2d.requires_grad else None, out.visible, out.radii,
-                               view.camera.pixel_scale[0], gradient_scale(view.camera))
-                if it >= cfg.densify_from and it % cfg.densify_every == 0:
-                    after_reset = (it >= cfg.size_prune_from if cfg.size_prune_from is not None
-                                   else cfg.opacity_reset_every > 0 and it > cfg.opacity_reset_every)
-                    res = densify_and_prune(
-                        g, self.opt, self.stats,
-                        grad_threshold=cfg.densify_grad_threshold, percent_dense=cfg.percent_dense,
-                        extent=cfg.extent, min_opacity=cfg.min_opacity,
-                        max_world_scale=(cfg.max_world_scale * cfg.extent
-                                         if after_reset and cfg.max_world_scale else None),
-                        max_screen_radius=cfg.max_screen_radius if after_reset else None,
-                        max_gaussians=cfg.max_gaussians, generator=self.gen,
-                    )
-                    self.g = res.gaussians
-                    self._has_layout = None
-                    self.stats = DensifyStats.zeros(len(self.g), dtype=self.g.means.dtype, device=self.device)
-                if cfg.opacity_reset_every > 0 and it % cfg.opacity_reset_every == 0:
-                    if cfg.mip_filter:  # clamp the opacity as drawn (Mip-Splatting's reset)
-                        rate = sampling_rate(self.g.means, [v.viewmat for v in self.views],
-                                             [v.camera for v in self.views])
-                        cap = reset_cap_logits(self.g.log_scales, filter_variance(rate, cfg.mip_filter_variance))
-                        if not cfg.mip_filter_keep_integral:
-                            cap = torch.full_like(cap, math.log(0.01 / 0.99))
-                        self.g.opacity_logits.copy_(torch.minimum(self.g.opacity_logits, cap))
-                        self.opt.reset("opacity_logits")
-                    else:
-                        reset_opacity(self.g, self.opt)
+            g = self.strategy.step_post_backward(self.g, self.opt, out, view.camera, it, self.views, self.gen)
+            if g is not self.g:
+                self.g = g
+                self.objective.model_changed()
             lap("densify")
-
         # 0-dim tensors, not floats: reading them would wait for the device every iteration;
         # the log (every log_every iterations) converts them
-        lv = loss.detach()
+        lv = terms.loss.detach()
         p = psnr_tensor(pred, view.image, view.mask)
         self.ema.update(lv, p)
         self.last_loss = lv
         lap("log")
         self._in_step = False
-        return {
-            "iteration": it, "loss": lv, "l1": l1.detach(), "ssim": s.detach(),
-            "layout": None if lay is None else lay.detach(), "psnr": p, "view": view.name,
-            "coverage": None if cov is None else cov.detach(),
-        }
+        detached = lambda t: None if t is None else t.detach()  # noqa: E731
+        return {"iteration": it, "loss": lv, "l1": terms.l1.detach(), "ssim": terms.ssim.detach(),
+                "layout": detached(terms.layout), "psnr": p, "view": view.name,
+                "coverage": detached(terms.coverage)}
+
+    def _schedule(self, it: int) -> None:
+        """Iteration `it`'s position learning rate and SH bands."""
+        cfg = self.cfg
+        self.opt.lrs["means"] = expon_lr(it, cfg.lr_position_init * cfg.extent, cfg.lr_position_final * cfg.extent,
+                                         cfg.iterations)
+        if cfg.sh_degree_every > 0 and it % cfg.sh_degree_every == 0:
+            self.active_sh = min(self.active_sh + 1, cfg.sh_degree, self.g.sh_degree)
+
+    def _optimiser_step(self) -> None:
+        """Adam on every parameter (non-finite gradients zeroed and counted, without a host sync
+        on a GPU), the appearance transforms' step, then the parameters kept valid."""
+        g = self.g
+        grads = [p.grad for p in (getattr(g, k) for k in PARAM_NAMES) if p.grad is not None and p.grad.numel()]
+        finite = _all_finite(grads)
+        self.nonfinite_steps = self.nonfinite_steps + (~finite).long()
+        # on the CPU reading the flag costs nothing, and saves a pass over every gradient
+        if self.device.type != "cpu" or not bool(finite):
+            for gr in grads:
+                torch.nan_to_num_(gr, nan=0.0, posinf=0.0, neginf=0.0)
+        self.opt.step(g)
+        if self.appearance is not None:
+            self.appearance.step()
+        Adam.zero_grad(g)
+        # quaternions: keep them away from zero (the renderer copes, Adam's steps would not)
+        qn = torch.linalg.vector_norm(g.quats, dim=-1, keepdim=True)
+        g.quats.copy_(torch.where(qn > 1e-8, g.quats, g.quats.new_tensor([1.0, 0, 0, 0])))
+        if self.cfg.max_anisotropy is not None:
+            clamp_anisotropy_(g.log_scales, self.cfg.max_anisotropy)
 
     # -- the loop --------------------------------------------------------------
     def train(self, until: int | None = None,
@@ -512,14 +407,14 @@ class Trainer:
     def _log(self, info: dict) -> None:
         """One record of plain numbers (the host syncs with the device here, every log_every steps)."""
         rec = {
-            "iteration": info["iteration"], "loss": _num(info["loss"]), "l1": _num(info["l1"]),
-            "ssim": _num(info["ssim"]), "layout": _num(info["layout"]), "psnr": _num(info["psnr"]),
-            "ema_loss": _num(self.ema.loss), "ema_psnr": _num(self.ema.psnr),
+            "iteration": info["iteration"], "loss": plain_number(info["loss"]), "l1": plain_number(info["l1"]),
+            "ssim": plain_number(info["ssim"]), "layout": plain_number(info["layout"]), "psnr": plain_number(info["psnr"]),
+            "ema_loss": plain_number(self.ema.loss), "ema_psnr": plain_number(self.ema.psnr),
             "num_gaussians": len(self.g), "sh_degree": self.active_sh, "lr_means": self.opt.lrs["means"],
             "seconds": round(self.train_seconds, 3), "nonfinite_steps": int(self.nonfinite_steps),
         }
         if info.get("coverage") is not None:
-            rec["coverage"] = _num(info["coverage"])
+            rec["coverage"] = plain_number(info["coverage"])
         self.records.append(rec)
         if self.log_path is not None:
             with open(self.log_path, "a") as f:
@@ -543,177 +438,40 @@ class Trainer:
         bands (those never activated are zero)."""
         return self._drawn().detach()
 
-    # -- checkpoints ------------------------------------------------------------
+    # -- checkpoints (gaussians/checkpoint.py) -------------------------------------
     def state_dict(self) -> dict:
-        """Tensors and plain data only (what torch.load(weights_only=True) accepts); every tensor
-        on the CPU, so a checkpoint written on one device resumes on another."""
-        return _to_cpu({
-            "version": CHECKPOINT_VERSION,
-            "fingerprint": self.cfg.fingerprint() + self.extra_fingerprint,
-            "iteration": self.iteration,
-            "gaussians": {k: v.detach().clone() for k, v in self.g.tensors().items()},
-            "opt": self.opt.state_dict(),
-            "stats": self.stats.state_dict(),
-            "gen": self.gen.get_state(),
-            "torch_rng": torch.get_rng_state(),
-            "np_rng": _np_rng_to_plain(np.random.get_state()),
-            "active_sh": self.active_sh,
-            "stack": list(self.stack),
-            "ema": {k: _num(v) for k, v in asdict(self.ema).items()},
-            "appearance": None if self.appearance is None else self.appearance.state_dict(),
-            "records": list(self.records),
-            "train_seconds": self.train_seconds,
-            "nonfinite_steps": int(self.nonfinite_steps),
-        })
+        return checkpoint.trainer_state(self)
 
     def save_checkpoint(self, path: Path) -> None:
-        """Write atomically (temporary file, then rename). On failure the temporary file is
-        removed; an OSError is re-raised naming `path` (a full disk would otherwise read as
-        an anonymous "[Errno 28] No space left on device")."""
-        path = Path(path)
-        tmp = path.with_name(path.name + ".tmp")
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            torch.save(self.state_dict(), tmp)
-            os.replace(tmp, path)
-        except BaseException as e:  # also Ctrl-C mid-write: never leave a half file behind
-            with contextlib.suppress(OSError):
-                tmp.unlink(missing_ok=True)
-            if isinstance(e, OSError):
-                reason = e.strerror or str(e) or type(e).__name__
-                raise OSError(e.errno, f"cannot write the training checkpoint: {reason}", str(path)) from e
-            raise
+        checkpoint.write(self.state_dict(), path)
 
     def load_state_dict(self, s: dict) -> None:
         """Restore a checkpoint. Raises ValueError (saying what is wrong) and changes nothing
         unless the whole checkpoint is valid for this trainer."""
-        new = self._checked_state(s)
+        new = checkpoint.checked_state(s, self)
         # everything below is validated; none of it can fail half-way
         self.iteration = new["iteration"]
         self.g = new["g"].to(device=self.device)
         self.g.requires_grad_(True)
-        self._has_layout = None
+        self.objective.model_changed()
         self.opt = new["opt"].to(self.device)
-        self.stats = new["stats"].to(self.device)
+        self.strategy.stats = new["stats"].to(self.device)
         self.gen.set_state(new["gen"])
         torch.set_rng_state(new["torch_rng"])
         np.random.set_state(new["np_rng"])
         self.active_sh = new["active_sh"]
         self.stack = new["stack"]
-        self.ema = new["ema"]
+        self.ema = _Ema(**new["ema"])
         self.records = new["records"]
         self.train_seconds = new["train_seconds"]
         self.nonfinite_steps = new["nonfinite_steps"]
         self.appearance = new["appearance"]
 
-    def _checked_state(self, s: object) -> dict:
-        """The trainer state a checkpoint describes, every field checked (type, shape, range)
-        so that a crafted or damaged file cannot leave a trainer that fails later."""
-        if not isinstance(s, dict):
-            raise ValueError(f"checkpoint is a {type(s).__name__}, not a dict")
-        # plain comparisons only: `tensor != value` would be a tensor, not a bool
-        version = s.get("version")
-        if not _is_int(version) or version != CHECKPOINT_VERSION:
-            raise ValueError(f"checkpoint version {_short(version, 40)} is not {CHECKPOINT_VERSION}")
-        missing = sorted(_STATE_KEYS - set(s))
-        if missing:
-            raise ValueError(f"checkpoint lacks {', '.join(missing)}")
-        fp = s["fingerprint"]
-        if not isinstance(fp, str) or fp != self.cfg.fingerprint() + self.extra_fingerprint:
-            raise ValueError("checkpoint was made with different training settings")
-        out: dict = {}
-        out["iteration"] = _int_in(s["iteration"], "iteration", 0, self.cfg.iterations)
-
-        # the model: the fields, dtypes and SH bands of this trainer's; Gaussians checks the shapes
-        ref = self.g.tensors()
-        gs = s["gaussians"]
-        if not isinstance(gs, dict) or set(gs) != set(ref):
-            raise ValueError(f"checkpoint gaussians must hold exactly {', '.join(ref)}")
-        for k, v in gs.items():
-            if not _is_dense(v, ref[k].dtype) or v.ndim == 0:
-                raise ValueError(f"checkpoint gaussians.{k} is not a {ref[k].dtype} tensor")
-            if v.is_floating_point() and not bool(torch.isfinite(v).all()):
-                raise ValueError(f"checkpoint gaussians.{k} has non-finite values")
-        g = Gaussians(**{k: v.detach().clone() for k, v in gs.items()})  # raises ValueError on bad shapes
-        if g.sh_rest.shape[1] != self.g.sh_rest.shape[1]:
-            raise ValueError(f"checkpoint model has SH degree {g.sh_degree}, not {self.g.sh_degree}")
-        n = len(g)
-
-        # a fresh optimiser: validating into it leaves self.opt untouched
-        opt = Adam(dict(self.opt.lrs), self.opt.betas, self.opt.eps)
-        opt.load_state_dict(s["opt"])
-        if set(opt.lrs) != set(self.opt.lrs):
-            raise ValueError("checkpoint optimiser covers other parameters")
-        for k, m in opt.exp_avg.items():
-            p = getattr(g, k)
-            if m.shape != p.shape or m.dtype != p.dtype:
-                raise ValueError(f"checkpoint optimiser moments of {k} do not match the model")
-        out["g"], out["opt"] = g, opt
-
-        st = s["stats"]
-        names = ("grad_accum", "count", "max_radius")
-        if not isinstance(st, dict) or any(
-                not _is_dense(st.get(k), g.means.dtype) or tuple(st[k].shape) != (n,) for k in names):
-            raise ValueError(f"checkpoint stats must be {', '.join(names)}: "
-                             f"{g.means.dtype} tensors of length {n}")
-        out["stats"] = DensifyStats.from_state(st)
-
-        # RNG states: tried on throw-away generators first
-        for k in ("gen", "torch_rng"):
-            try:  # torch checks the size and the MT19937 fields
-                torch.Generator().set_state(s[k])
-            except (TypeError, RuntimeError) as e:
-                raise ValueError(f"checkpoint {k} is not a torch generator state ({_short(e)})") from None
-            out[k] = s[k]
-        out["np_rng"] = _np_rng_from_plain(s["np_rng"])
-
-        out["active_sh"] = _int_in(s["active_sh"], "active_sh", 0, g.sh_degree)
-        stack = s["stack"]
-        if not isinstance(stack, list | tuple):
-            raise ValueError("checkpoint stack is not a list")
-        out["stack"] = [_int_in(i, "stack entry", 0, len(self.views) - 1) for i in stack]
-        ema = s["ema"]
-        if not isinstance(ema, dict) or set(ema) != {"loss", "psnr"} or \
-                any(v is not None and not _is_real(v) for v in ema.values()):
-            raise ValueError("checkpoint ema must be {loss, psnr} numbers or None")
-        out["ema"] = _Ema(**{k: None if v is None else float(v) for k, v in ema.items()})
-        recs = s["records"]
-        if not isinstance(recs, list | tuple) or not all(isinstance(r, dict) for r in recs):
-            raise ValueError("checkpoint records must be a list of dicts")
-        try:  # they are written back to the JSON lines log
-            json.dumps(recs)
-        except (TypeError, ValueError):
-            raise ValueError("checkpoint records are not JSON data") from None
-        out["records"] = [dict(r) for r in recs]
-        if not _is_real(s["train_seconds"]) or not s["train_seconds"] >= 0:
-            raise ValueError("checkpoint train_seconds must be a number >= 0")
-        out["train_seconds"] = float(s["train_seconds"])
-        out["nonfinite_steps"] = _int_in(s["nonfinite_steps"], "nonfinite_steps", 0, None)
-        out["appearance"] = self._new_appearance()
-        if out["appearance"] is None:
-            if s["appearance"] is not None:
-                raise ValueError("checkpoint has appearance transforms, this run has appearance off")
-        else:
-            out["appearance"].load_state_dict(s["appearance"])
-        return out
-
     def load_checkpoint(self, path: Path) -> None:
         """Load a checkpoint written by save_checkpoint. A file that cannot be read, holds anything
         but tensors and plain data, or does not fit this trainer raises ValueError; the trainer is
         then unchanged."""
-        path = Path(path)
-        try:
-            # weights_only: the unpickler builds tensors and plain containers, never calls code
-            s = torch.load(path, map_location="cpu", weights_only=True)
-        except pickle.UnpicklingError:
-            # torch's message suggests weights_only=False: the one thing not to do with such a file
-            raise ValueError("not a checkpoint: damaged, or holds objects other than tensors and plain data"
-                             ) from None
-        except OSError:
-            raise
-        except Exception as e:  # noqa: BLE001 (zip, EOF, storage errors of a damaged file)
-            raise ValueError(f"not a readable checkpoint ({_short(e) or type(e).__name__})") from None
-        self.load_state_dict(s)
+        self.load_state_dict(checkpoint.read(path))
         if self.log_path is not None:  # the log restarts from the checkpoint's records
             with open(self.log_path, "w") as f:
                 for rec in self.records:
@@ -729,76 +487,3 @@ def clamp_anisotropy_(log_scales: torch.Tensor, max_ratio: float) -> None:
     if bool(over.any()):
         rows = torch.nonzero(over, as_tuple=False).squeeze(1)
         log_scales[rows, top2.indices[rows, 0]] = limit[rows]
-
-
-def _num(x):
-    """A logged value as a plain number (None stays None); reading a device tensor waits for it."""
-    return None if x is None else float(x)
-
-
-def _to_cpu(x):
-    """`x` with every tensor in it (nested dicts, lists, tuples) moved to the CPU."""
-    if isinstance(x, torch.Tensor):
-        return x.detach().cpu()
-    if isinstance(x, dict):
-        return {k: _to_cpu(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return type(x)(_to_cpu(v) for v in x)
-    return x
-
-
-_STATE_KEYS = frozenset({
-    "fingerprint", "iteration", "gaussians", "opt", "stats", "gen", "torch_rng", "np_rng", "active_sh",
-    "stack", "ema", "records", "train_seconds", "nonfinite_steps", "appearance",
-})
-
-
-def _short(x: object, limit: int = 120) -> str:
-    """One line of an error message or value: its first sentence, at most `limit` characters."""
-    text = str(x).strip().splitlines()[0] if str(x).strip() else ""
-    text = text.split(". ")[0]
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
-_MT_N = 624  # words of MT19937 state
-
-
-def _is_int(x: object) -> bool:
-    return isinstance(x, int) and not isinstance(x, bool)
-
-
-def _is_real(x: object) -> bool:
-    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
-
-
-def _is_dense(t: object, dtype: torch.dtype) -> bool:
-    """A plain (strided, CPU) tensor of `dtype`: what save_checkpoint writes."""
-    return (isinstance(t, torch.Tensor) and t.layout == torch.strided and t.device.type == "cpu"
-            and t.dtype == dtype)
-
-
-def _int_in(x: object, what: str, lo: int, hi: int | None) -> int:
-    if not _is_int(x) or x < lo or (hi is not None and x > hi):
-        bound = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
-        raise ValueError(f"checkpoint {what} must be an integer {bound}, got {_short(repr(x), 40)}")
-    return int(x)
-
-
-def _np_rng_to_plain(state: tuple) -> dict:
-    """np.random.get_state() (a tuple holding a uint32 array) as plain data and a tensor."""
-    name, keys, pos, has_gauss, cached = state
-    return {"name": str(name), "keys": torch.from_numpy(np.asarray(keys, dtype=np.int64)), "pos": int(pos),
-            "has_gauss": int(has_gauss), "cached_gaussian": float(cached)}
-
-
-def _np_rng_from_plain(d: object) -> tuple:
-    """The inverse of _np_rng_to_plain, every field checked first (numpy trusts `pos`:
-    an out-of-range one crashes the interpreter on the next draw)."""
-    ok = (isinstance(d, dict) and isinstance(d.get("name"), str) and d["name"] == "MT19937"
-          and _is_dense(d.get("keys"), torch.int64) and tuple(d["keys"].shape) == (_MT_N,)
-          and _is_int(d.get("pos")) and 0 <= d["pos"] <= _MT_N
-          and _is_int(d.get("has_gauss")) and d["has_gauss"] in (0, 1) and _is_real(d.get("cached_gaussian")))
-    keys = d["keys"].numpy() if ok else None
-    if keys is None or keys.min() < 0 or keys.max() > np.iinfo(np.uint32).max:
-        raise ValueError("checkpoint np_rng is not a numpy MT19937 state")
-    return ("MT19937", keys.astype(np.uint32), int(d["pos"]), int(d["has_gauss"]), float(d["cached_gaussian"]))

@@ -120,7 +120,7 @@ def test_coverage_loss_closes_a_hole_no_training_view_shows():
         cfg = small_config(iterations=40, extent=2.0, densify_until=0, lambda_layout=0.0, lambda_dssim=0.0,
                            lambda_l1=0.0, lambda_coverage=lam, coverage_height=8)
         tr = Trainer(g, views, cfg)
-        centres = tr._camera_centres()
+        centres = tr.objective.camera_centres()
         assert torch.allclose(centres.sort(dim=0).values[:, 0], torch.tensor([0.0, 0.6]), atol=1e-6)
         tr.train()
         opacity[lam] = float(torch.sigmoid(tr.g.opacity_logits.detach()).mean())
