@@ -91,11 +91,16 @@ def ablate_command(
     import shlex
     import sys
 
-    from evaluation.experiments import PAPER_SEEDS, paper_config, run_ablation
+    from evaluation.ablate_estimate import ablation_estimate
+    from evaluation.experiments import PAPER_SEEDS, ablation_variants, paper_config, run_ablation
 
     engine = _engine(scene, out, config, set_)
     cfg = paper_config(engine.config) if paper else engine.config
     seeds = seeds if seeds is not None else PAPER_SEEDS if paper else 1
+    train = engine.registry["train"].params.model_validate(cfg.get("train", {}))
+    trainings = seeds * (len(ablation_variants(baseline)) + (equal != "none"))  # + the equal-budget row
+    console.print(escape(ablation_estimate(engine.out_dir, trainings, iterations or int(train.resolved("iterations")),
+                                           int(train.resolved("height")))), soft_wrap=True)
     command = "pano-pipe " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:2] == ["ablate"] else None
     res = run_ablation(engine.scene, engine.out_dir, cfg, seeds=seeds, iterations=iterations,
                        log=console.print, baseline=baseline, command=command, equal=equal)

@@ -60,3 +60,32 @@ def test_render_command_needs_training(sim_scene, tmp_path):
     pytest.importorskip("stages.train", reason="the train stage is not in this checkout yet")
     r = CliRunner().invoke(app, ["render", str(sim_scene.root), "--out", str(tmp_path)])
     assert r.exit_code != 0 and "train first" in str(r.exception)
+
+
+class _GridStarted(Exception):
+    pass
+
+
+def test_ablate_paper_says_what_it_will_cost_before_it_starts(run, sim_scene, monkeypatch):
+    import evaluation.experiments
+
+    def grid_started(*args, **kwargs):
+        raise _GridStarted
+
+    monkeypatch.setattr(evaluation.experiments, "run_ablation", grid_started)
+    r = CliRunner().invoke(app, ["ablate", str(sim_scene.root), "--out", str(run), "--paper"])
+    assert isinstance(r.exception, _GridStarted)  # the line below came first
+    # 4 variants + the equal-time row, 3 seeds; the run's training: 1 s for 50 iterations at 16x32
+    seconds = 15 * 7000 * (1.0 / 50) * (512 / 16) ** 2
+    assert "ablate: 15 trainings of 7000 iterations at 512x1024 (H×W)" in r.output
+    assert f"about {seconds / 3600:.1f} h on this machine" in r.output
+
+
+def test_ablate_without_an_earlier_training_says_how_to_get_an_estimate(sim_scene, tmp_path, monkeypatch):
+    import evaluation.experiments
+
+    monkeypatch.setattr(evaluation.experiments, "run_ablation", lambda *a, **k: (_ for _ in ()).throw(_GridStarted))
+    r = CliRunner().invoke(app, ["ablate", str(sim_scene.root), "--out", str(tmp_path / "R"), "--seeds", "2",
+                                 "--equal", "none", "--iterations", "10"])
+    assert isinstance(r.exception, _GridStarted)
+    assert "8 trainings of 10 iterations" in r.output and "pano-pipe run train" in r.output
