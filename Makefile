@@ -3,7 +3,9 @@ SHELL := /bin/bash
 PY := .venv/bin/python
 PIP := .venv/bin/pip
 BIN := .venv/bin
+# what the pipeline needs (make demo), and what the tests add on top (make test)
 STAMP := .venv/.installed
+TEST_STAMP := .venv/.installed-test
 DEMO_SCENE := scenes/demo
 TORCH := torch==2.13.0
 # auto: the CUDA build of torch where nvidia-smi lists a GPU, the CPU build elsewhere (scripts/install_torch.sh)
@@ -13,7 +15,7 @@ export TORCH_BUILD
 APT_REQUIRED := libusb-1.0-0 libgomp1
 APT_OPTIONAL := chromium
 
-.PHONY: setup demo test bench gpu-check clean-venv system-deps
+.PHONY: setup setup-test demo test bench gpu-check clean-venv system-deps
 
 setup: $(STAMP)
 
@@ -23,11 +25,18 @@ $(STAMP): pyproject.toml
 	$(PIP) install -q --upgrade pip
 	@# torch first and pinned, CPU or CUDA build by what the machine has (TORCH_BUILD=auto|cpu|cuda)
 	TORCH="$(TORCH)" PIP=$(PIP) PY=$(PY) scripts/install_torch.sh
-	@# the CPU build's triton is the one CI runs the GPU kernels with in its interpreter; a CUDA build brings its own
-	$(PIP) install -q -e ".[test$$(grep -qx cpu .venv/.torch-build && echo ,interpreter)]"
+	$(PIP) install -q -e .
 	@# LPIPS's linear heads ship in the lpips wheel; --no-deps: its torchvision would replace our torch.
 	$(PIP) install -q --no-deps lpips==0.1.4
 	@touch $(STAMP)
+
+# the test extras (pytest, hypothesis, xdist, ray, ...): only `make test` needs them
+setup-test: $(TEST_STAMP)
+
+$(TEST_STAMP): $(STAMP)
+	@# the CPU build's triton is the one CI runs the GPU kernels with in its interpreter; a CUDA build brings its own
+	$(PIP) install -q -e ".[test$$(grep -qx cpu .venv/.torch-build && echo ,interpreter)]"
+	@touch $(TEST_STAMP)
 
 system-deps:
 	@missing=""; for p in $(APT_REQUIRED); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
@@ -46,7 +55,7 @@ demo: setup
 	$(BIN)/pano-pipe run all $(DEMO_SCENE)
 	$(BIN)/pano-pipe report $(DEMO_SCENE)
 
-test: setup
+test: setup-test
 	$(PY) -m pytest -q -n 2 --dist loadfile
 
 bench: setup
