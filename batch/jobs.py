@@ -19,6 +19,8 @@ from pathlib import Path
 #: first job of STAGE that finds no MARKER file create it and kill its own process (SIGKILL),
 #: as an out-of-memory kill or a lost node would. Unset in normal use.
 KILL_ONCE_ENV = "PANO_PIPE_INJECT_KILL_ONCE"
+#: A failed scene's error as the batch summary shows it: one line, at most this long.
+ERROR_CHARS = 300
 
 
 @dataclass(frozen=True)
@@ -52,7 +54,7 @@ def run_stage_job(job: StageJob) -> JobOutcome:
     """Bring `job.stage` of its scene up to date; every failure is returned, never raised
     (except an interrupt, which the executor handles)."""
     from pipeline.engine import Engine
-    from runfs.errors import PanoError
+    from runfs.errors import PanoError, one_line
     from pipeline.registry import build_registry
     from schemas.scene_loader import load_scene
 
@@ -70,20 +72,15 @@ def run_stage_job(job: StageJob) -> JobOutcome:
         res = engine.run_one(job.stage, force=job.force, resume=job.resume)
         return JobOutcome(job.stage, res.outcome, res.duration_s, res.reason, **where)
     except PanoError as e:
-        return JobOutcome(job.stage, "failed", time.perf_counter() - t0, error=_one_line(str(e)),
+        return JobOutcome(job.stage, "failed", time.perf_counter() - t0, error=one_line(e, ERROR_CHARS),
                           exit_code=e.exit_code, **where)
     except OSError as e:
         where_ = e.filename or job.out_dir
         return JobOutcome(job.stage, "failed", time.perf_counter() - t0,
-                          error=_one_line(f"{where_}: {e.strerror or e}"), exit_code=2, **where)
+                          error=one_line(f"{where_}: {e.strerror or e}", ERROR_CHARS), exit_code=2, **where)
     except Exception as e:  # noqa: BLE001 (a bug of ours, in one scene: the batch goes on)
-        return JobOutcome(job.stage, "failed", time.perf_counter() - t0,
-                          error=_one_line(f"{type(e).__name__}: {e} (an internal error)"), exit_code=1, **where)
-
-
-def _one_line(text: str, limit: int = 300) -> str:
-    text = " ".join(str(text).split())
-    return text if len(text) <= limit else text[: limit - 3] + "..."
+        return JobOutcome(job.stage, "failed", time.perf_counter() - t0, exit_code=1, **where,
+                          error=one_line(f"{type(e).__name__}: {e} (an internal error)", ERROR_CHARS))
 
 
 def _maybe_inject_kill(stage: str) -> None:

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from runfs.errors import PanoError
+from runfs.errors import PanoError, one_line
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
@@ -137,8 +137,7 @@ class OnnxDepthModel:
         try:
             self.session = inference_session(self.path, opts, providers)
         except Exception as exc:  # onnxruntime raises its own types; the user needs one line
-            msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            raise PanoError(self.path, f"not a loadable ONNX model ({msg[:200]})") from None
+            raise PanoError(self.path, f"not a loadable ONNX model ({one_line(exc, 200)})") from None
         self.metadata = dict(self.session.get_modelmeta().custom_metadata_map)
         self.contract = contract if contract is not None else self._contract(overrides or {})
         c = self.contract
@@ -246,8 +245,8 @@ class OnnxDepthModel:
         try:
             (out,) = self.session.run([self.output_name], {self.input_name: x})[:1]
         except Exception as exc:
-            msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            raise PanoError(self.path, f"inference failed on a {list(x.shape)} input ({msg[:200]})") from None
+            raise PanoError(self.path,
+                            f"inference failed on a {list(x.shape)} input ({one_line(exc, 200)})") from None
         return self.check_output(np.asarray(out), hw)
 
     def check_output(self, out: np.ndarray, hw: tuple[int, int]) -> np.ndarray:

@@ -168,12 +168,13 @@ def summarise_run(run_dir: Path, results=None) -> dict:
     return {
         "dir": str(run_dir),
         **{k: mean.get(k) for k in ("psnr", "psnr_colorfit", "ssim", "ws_psnr", "lpips", "depth_abs_rel")},
-        **tr.model_dump(mode="json", include={"train_seconds", "num_gaussians", "iterations", "train_images"}),
+        **tr.model_dump(mode="json",
+                        include={"train_seconds", "num_gaussians", "iterations", "train_images"}),
         "pixels_per_image": tr.crops.size ** 2 if tr.crops else tr.resolution[0] * tr.resolution[1],
         **ev.model_dump(mode="json", include={"fps", "split", "stitched"}),
         "eval_resolution": list(ev.resolution),
-        "train": tr.model_dump(mode="json", include={"init", "projection", "layout_reg", "iterations", "resolution",
-                                                     "preset", "appearance"}),
+        "train": tr.model_dump(mode="json", include={"init", "projection", "layout_reg", "iterations",
+                                                     "resolution", "preset", "appearance"}),
         "cached": ran.get("train") == "cached",
     }
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from runfs.errors import PanoError
+from runfs.errors import PanoError, one_line
 
 INPUT_SHAPE = (1, 3, 512, 1024)
 OUTPUT_SHAPES = {"bon": (1, 2, 1024), "cor": (1, 1, 1024)}
@@ -48,7 +48,7 @@ def _fits(shape, expected) -> bool:
     )
 
 
-def _fmt(shape) -> str:
+def _shape_text(shape) -> str:
     return "[" + ",".join(str(d) for d in shape) + "]"
 
 
@@ -57,9 +57,9 @@ def check_contract(session, path: Path) -> str:
     ins = session.get_inputs()
     outs = {o.name: o for o in session.get_outputs()}
     got = (
-        ", ".join(f"input {i.name}{_fmt(i.shape)}" for i in ins)
+        ", ".join(f"input {i.name}{_shape_text(i.shape)}" for i in ins)
         + "; "
-        + ", ".join(f"output {o.name}{_fmt(o.shape)}" for o in outs.values())
+        + ", ".join(f"output {o.name}{_shape_text(o.shape)}" for o in outs.values())
     )
     ok = len(ins) == 1 and _fits(ins[0].shape, INPUT_SHAPE) and ins[0].type == "tensor(float)"
     for name, shape in OUTPUT_SHAPES.items():
@@ -88,8 +88,7 @@ class LayoutModel:
         except PanoError:
             raise
         except Exception as e:  # onnxruntime raises its own exception types
-            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-            raise PanoError(self.path, f"not a loadable ONNX model: {first}") from None
+            raise PanoError(self.path, f"not a loadable ONNX model: {one_line(e, 200)}") from None
         self.input_name = check_contract(self.session, self.path)
 
     def _run(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -30,7 +30,7 @@ from rich.text import Text
 from rich.markup import escape
 
 from pipeline.console import console, err_console
-from runfs.errors import PanoError, did_you_mean
+from runfs.errors import PanoError, did_you_mean, one_line
 from runfs.paths import default_run_folder
 from schemas.scene import REAL_CAPTURE_NADIR_DEG
 
@@ -615,15 +615,11 @@ def _interrupted_inside(e: BaseException) -> bool:
     return False
 
 
-def _one_line(text: str) -> str:
-    return " ".join(str(text).split())
-
-
 def _fail(message: str, code: int) -> None:
     """One line on stderr, never parsed as markup (user text may hold '[/b]'), then exit."""
     from rich.text import Text
 
-    err_console.print(Text.assemble(("error:", "red"), " ", _one_line(message)), soft_wrap=True)
+    err_console.print(Text.assemble(("error:", "red"), " ", one_line(message)), soft_wrap=True)
     sys.exit(code)
 
 

@@ -16,6 +16,15 @@ class PanoError(Exception):
         super().__init__(f"{self.where}: {problem}" if self.where else problem)
 
 
+def one_line(message: object, limit: int | None = None) -> str:
+    """`message` (text or an exception) as one line: every run of whitespace, line breaks
+    included, one space; an exception without text by its type's name; at most `limit` characters."""
+    text = " ".join(str(message).split())
+    if not text and isinstance(message, BaseException):
+        text = type(message).__name__
+    return text if limit is None or len(text) <= limit else text[: limit - 3] + "..."
+
+
 def did_you_mean(word: str, choices) -> str:
     """' (did you mean X?)' naming the closest of `choices` to a misspelt `word`, or ''."""
     import difflib

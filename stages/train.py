@@ -29,7 +29,7 @@ from gaussians.ply import nonfinite_problem, save_ply
 from gaussians.trainer import CHECKPOINT_NAME, Trainer, TrainConfig, TrainView, scene_extent
 from panogeom.equirect import angles_to_pixel, dirs_to_angles
 from panogeom.images import read_rgb
-from runfs.errors import PanoError
+from runfs.errors import PanoError, one_line
 from schemas.scene_loader import valid_mask
 from pipeline.stage import StageContext
 from schemas.scene import Scene, View
@@ -481,13 +481,6 @@ class _DeferredInterrupt:
         return False
 
 
-def _one_line(e: BaseException, limit: int = 200) -> str:
-    """An exception as one short line for a warning."""
-    lines = str(e).strip().splitlines()
-    text = lines[0] if lines else type(e).__name__
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
 def run(ctx: StageContext) -> TrainOutput:
     from rich.progress import TextColumn
 
@@ -527,7 +520,7 @@ def run(ctx: StageContext) -> TrainOutput:
                 resumed_from = trainer.iteration
                 console.print(f"resuming training from iteration {resumed_from} ({escape(str(ckpt))})")
             except Exception as e:  # noqa: BLE001 (any unusable checkpoint: warn and start over, never fail)
-                ctx.warn(f"--resume: checkpoint {ckpt} not usable ({_one_line(e)}); training from the start")
+                ctx.warn(f"--resume: checkpoint {ckpt} not usable ({one_line(e, 200)}); training from the start")
                 # a fresh trainer (and log): nothing of the failed load survives
                 log_path.unlink(missing_ok=True)
                 trainer = Trainer(g, train_views, cfg, log_path=log_path)
@@ -565,7 +558,7 @@ def run(ctx: StageContext) -> TrainOutput:
             if ckpt is None or e.filename != str(ckpt):
                 raise
             # the trainer's checkpoint (full disk, lost permission): one line naming the file
-            raise PanoError(ckpt, e.strerror or _one_line(e)) from e
+            raise PanoError(ckpt, e.strerror or one_line(e, 200)) from e
 
     final = trainer.final_gaussians()
     diverged = nonfinite_problem(final)
