@@ -1,7 +1,8 @@
 """The user's model cache and the resolution of a model setting to the ONNX file a stage runs.
 
-Cache ($PANO_PIPE_MODELS_DIR, else $XDG_CACHE_HOME/pano-pipe/models, else
-~/.cache/pano-pipe/models), nothing of it inside a scene or run folder:
+Cache ($PANO_PIPE_MODELS_DIR, else `models/` in the cache root of runfs.cache:
+$PANO_PIPE_CACHE, $XDG_CACHE_HOME/pano-pipe or ~/.cache/pano-pipe), nothing of it inside a
+scene or run folder:
 
     <cache>/<filename>                 a known model's checkpoint, as published
     <cache>/<name>.onnx                its ONNX export (made once, kept beside it)
@@ -31,11 +32,13 @@ CHECKPOINT_SUFFIXES = (".pth", ".pt", ".ckpt")
 
 
 def cache_dir() -> Path:
-    """Where downloaded models live (DESIGN.md); $PANO_PIPE_MODELS_DIR overrides it."""
+    """Where downloaded models live (DESIGN.md): `models/` in the cache root (runfs.cache);
+    $PANO_PIPE_MODELS_DIR overrides it."""
+    from runfs.cache import user_cache_root
+
     if os.environ.get(CACHE_ENV):
         return Path(os.environ[CACHE_ENV]).expanduser()
-    base = os.environ.get("XDG_CACHE_HOME") or "~/.cache"
-    return Path(base).expanduser() / "pano-pipe" / "models"
+    return user_cache_root() / "models"
 
 
 def make_cache_dir(sub: str = "") -> Path:

@@ -1,6 +1,7 @@
 """The compiled CPU backend: a torch C++ extension (OpenMP), built once per machine.
 
-The build is cached in ``$PANO_PIPE_CACHE`` (default ``~/.cache/pano-pipe``) under
+The build is cached in ``$PANO_PIPE_CACHE`` (default ``$XDG_CACHE_HOME/pano-pipe``, else
+``~/.cache/pano-pipe``: runfs.cache) under
 ``splatting-<key>``, the key hashing everything the binary depends on: the sources,
 the compiler flags, the compiler (``$CXX`` or ``c++``, and its ``--version``), the torch
 version *and install folder* (its headers and libraries are absolute paths in the build),
@@ -89,7 +90,9 @@ def _compiler_id() -> str:
 
 
 def cache_root() -> Path:
-    return Path(os.environ.get("PANO_PIPE_CACHE", Path.home() / ".cache" / "pano-pipe"))
+    from runfs.cache import user_cache_root  # the model cache's root too: one rule for both
+
+    return user_cache_root()
 
 
 def build_dir() -> Path:
