@@ -301,16 +301,22 @@ def run_on_full_disk(sb, args: list[str], budget: int):
 @example(budget=4000, command="run-stage-sampling")
 @fuzz_settings(max_examples=6)
 def test_full_disk(budget, command, fuzz_base, tmp_path):
-    from fuzz_helpers import check
+    from fuzz_helpers import completed_stages, contract_problems
 
     with sandbox(fuzz_base, tmp_path) as sb:
         if command == "report":
             args = ["report", "<SCENE>", "--out", "<RUN>"]
-        else:
-            args = run_args(None, command) + ["--force", "--set", "sampling.seed=7"]
+        else:  # a new sampling seed: sampling and align rerun, the rest is cached
+            args = run_args(None, command) + ["--set", "sampling.seed=7"]
         before_outside, before_run = sb.outside(), sb.run_files()
+        log_before = (sb.run / "run_log.jsonl").stat().st_size
         res = run_on_full_disk(sb, args, budget)
-        check((budget, command), res, sb, before_outside, before_run, "full-disk")
+        problems = contract_problems(res, before_outside, sb.outside(), before_run, sb.run_files(),
+                                     completed_stages(sb.run, log_before))
+        # a stage that finished before the disk filled was rightly replaced
+        problems = [p for p in problems if not (p.startswith("failed run changed previous artifacts") and
+                                                p.count("(its stage re-ran ok") == p.count("changed ") - 1)]
+        assert problems == [], (budget, command, problems, res.err[-2000:])
         assert "RPly" not in res.err and "libpng" not in res.err
 
 
@@ -335,8 +341,9 @@ def test_scene_numbers(view, field, value, fuzz_base, tmp_path, capfd):
         sb.write_manifest(data)
         res = run_example(sb, run_args("align", "status"), capfd, (view, field, value), "scene-numbers")
         if value is not None or field == "pose":
-            if value in (True, False, "1.5") or (isinstance(value, float) and (value != value or abs(value) in
-                                                                                (float("inf"), 1e-300))):
+            tiny = value == 1e-300 and field == "camera_height"  # under 5 cm; a tiny nadir cap is fine
+            if value in (True, False, "1.5") or tiny or (isinstance(value, float) and (value != value or
+                                                                                      abs(value) == float("inf"))):
                 assert res.code == 2 and (field if field != "pose" else "pose") in res.err, res.err
 
 
