@@ -566,7 +566,13 @@ def _model_cost_line(tr: dict | None, ev: dict) -> str | None:
     how = f"test panoramas stitched from {ev['stitched']}" if ev.get("stitched") else "test panoramas rendered directly"
     return (f"Model: {fmt(td.get('num_gaussians'), ',')} Gaussians after {fmt(td.get('iterations'), ',')} "
             f"iterations (one training image each{f', from {images} training images' if images else ''}) "
-            f"in {fmt(td.get('train_seconds'), '.1f')} s of training; {proj}, {how}.")
+            f"in {fmt(td.get('train_seconds'), '.1f')} s of training{_kernel_build_note(td)}; {proj}, {how}.")
+
+
+def _kernel_build_note(td: dict) -> str:
+    """The C++ kernel's first build on this machine, timed apart from training ('' when none)."""
+    seconds = td.get("kernel_build_seconds")
+    return "" if seconds is None else f" (after {fmt(seconds, '.1f')} s compiling the C++ kernel, once per machine)"
 
 
 class _Doc:
@@ -738,9 +744,9 @@ def _write_report(run_dir: Path, scene, out_dir: Path, states: dict[str, str] | 
             doc.p(f"LPIPS unavailable: {d.get('lpips_reason')}", "warn")
         h, w = (list(d.get("resolution") or []) + ["?", "?"])[:2]
         doc.p(
-            f"Render speed {fmt(d.get('fps'), '.2f')} FPS (median of {fmt(d.get('fps_repeats'))}) for a {w}×{h} "
+            f"Render speed {fmt(d.get('fps'), '.2f')} FPS (median of {fmt(d.get('fps_repeats'))}) for a {h}×{w} (H×W) "
             f"panorama, backend {fmt(d.get('backend'))} on {fmt(d.get('device'))}, {fmt(d.get('threads'))} torch "
-            f"threads, {fmt(d.get('num_gaussians'), ',')} Gaussians; evaluated at {w}×{h} on the "
+            f"threads, {fmt(d.get('num_gaussians'), ',')} Gaussians; evaluated at {h}×{w} on the "
             f"{fmt(d.get('split'))} split."
         )
         model_cost = _model_cost_line(read_artifact(run_dir, "train"), d)
@@ -775,6 +781,8 @@ def _write_report(run_dir: Path, scene, out_dir: Path, states: dict[str, str] | 
         summary = [
             ["iterations", fmt(td.get("iterations"))], ["Gaussians", fmt(td.get("num_gaussians"))],
             ["training seconds", fmt(td.get("train_seconds"))],
+            *([["C++ kernel build seconds (once)", fmt(td["kernel_build_seconds"])]]
+              if td.get("kernel_build_seconds") is not None else []),
             ["resolution (H×W)", "×".join(str(x) for x in td.get("resolution", []))],
             ["init", fmt(td.get("init"))], ["projection", fmt(td.get("projection"))],
             ["layout regularisation",

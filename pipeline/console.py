@@ -4,18 +4,23 @@ from __future__ import annotations
 
 
 import time
+from collections import deque
 
 from rich.console import Console
 from rich.markup import escape
+from rich.measure import Measurement
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
     Progress,
+    ProgressColumn,
     TaskProgressColumn,
     TextColumn,
     TimeElapsedColumn,
     TimeRemainingColumn,
 )
+from rich.table import Table
+from rich.text import Text
 
 #: What pano-pipe reports (progress, tables, warnings, results) goes to stdout, so it can be
 #: piped or saved; stderr holds only the one-line error of a failed command (err_console).
@@ -91,20 +96,75 @@ class PlainProgress:
         console.print(escape(", ".join(parts)), soft_wrap=True, highlight=False)
 
 
+class RecentRate:
+    """Steps per second over about the last `window_s` seconds: the current rate. An average from
+    the start stays low long after a slow start (a first iteration's warm-up, a slow phase)."""
+
+    def __init__(self, window_s: float = 10.0):
+        self.window_s = window_s
+        self._samples: deque[tuple[float, float]] = deque()
+
+    def update(self, count: float, now: float) -> float | None:
+        """Record `count` steps done at time `now` (seconds); the rate, None before two samples."""
+        self._samples.append((now, count))
+        while len(self._samples) > 2 and now - self._samples[1][0] >= self.window_s:
+            self._samples.popleft()  # the oldest kept still starts a window of at least window_s
+        t0, c0 = self._samples[0]
+        return (count - c0) / (now - t0) if now > t0 else None
+
+
+class EtaColumn(TimeRemainingColumn):
+    """'ETA 0:01:23': the label and the time, kept or dropped together."""
+
+    def render(self, task) -> Text:
+        return Text.assemble("ETA ", super().render(task))
+
+
+#: Column priorities of a progress line (FittingProgress): what an 80-column terminal keeps.
+KEEP_ALWAYS, KEEP_DESCRIPTION, KEEP_FIELD, KEEP_ELAPSED, KEEP_DECORATION = 10, 6, 3, 2, 0
+
+
+class FittingProgress(Progress):
+    """rich's Progress with each task on one line that fits the console: columns are dropped,
+    lowest priority first (the bar and percentage, then elapsed time, then the extra fields; among
+    equals the rightmost), never the step count and ETA."""
+
+    def __init__(self, *columns: tuple[ProgressColumn, int], **kwargs):
+        self.priorities = [priority for _, priority in columns]
+        super().__init__(*(c for c, _ in columns), **kwargs)
+
+    def make_tasks_table(self, tasks) -> Table:
+        tasks = [t for t in tasks if t.visible]
+        if not tasks:  # nothing to fit (also while Progress is being made: no console yet)
+            return Table.grid()
+        options = self.console.options
+        widths = [max((Measurement.get(self.console, options, column(t)).maximum for t in tasks), default=0)
+                  for column in self.columns]
+        keep = list(range(len(self.columns)))
+        while len(keep) > 1 and sum(widths[i] for i in keep) + len(keep) - 1 > self.console.width:
+            keep.remove(min(keep, key=lambda i: (self.priorities[i], -i)))
+        table = Table.grid(*(self.columns[i].get_table_column().copy() for i in keep), padding=(0, 1),
+                           expand=self.expand)
+        for task in tasks:
+            table.add_row(*(self.columns[i](task) for i in keep))
+        return table
+
+
 def make_progress(*extra_columns) -> Progress | PlainProgress:
-    """A progress bar with count, rate (via extra columns) and ETA on a terminal; plain periodic
-    lines otherwise (a pipe, a log file, CI)."""
+    """A progress bar with count, rate (via extra columns: a column, or (column, priority) to
+    outrank the others) and ETA on a terminal, fitted to its width; plain periodic lines
+    otherwise (a pipe, a log file, CI)."""
     if not console.is_terminal:
         return PlainProgress()
-    return Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TaskProgressColumn(),
-        *extra_columns,
-        TimeElapsedColumn(),
-        TextColumn("ETA"),
-        TimeRemainingColumn(),
+    extra = [c if isinstance(c, tuple) else (c, KEEP_FIELD) for c in extra_columns]
+    return FittingProgress(
+        (TextColumn("[bold]{task.description}"), KEEP_DESCRIPTION),
+        (BarColumn(), KEEP_DECORATION),
+        (MofNCompleteColumn(), KEEP_ALWAYS),
+        (TaskProgressColumn(), KEEP_DECORATION),
+        *extra,
+        (TimeElapsedColumn(), KEEP_ELAPSED),
+        (EtaColumn(), KEEP_ALWAYS),
         console=console,
         transient=False,
     )

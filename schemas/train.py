@@ -34,7 +34,10 @@ class TrainOutput(BaseModel):
     log: str = Field(description="train_log.jsonl: iteration, loss terms, PSNR, Gaussian count, wall time.")
     num_gaussians: int
     iterations: int
-    train_seconds: float
+    train_seconds: float = Field(description="Seconds of training iterations (without the kernel's build).")
+    kernel_build_seconds: float | None = Field(
+        default=None, description="Seconds compiling the C++ CPU kernel before training, on its first use on "
+                                  "this machine (None: it was built already); not in train_seconds.")
     resolution: tuple[int, int] = Field(description="Training (height, width).")
     sh_degree: int
     init: Literal["random", "layout", "depth", "layout+depth"]

@@ -268,6 +268,14 @@ def available() -> bool:
     return load() is not None
 
 
+def is_built() -> bool:
+    """Whether `load` needs no build: loaded already, failed already, or a published build exists."""
+    if _module is not None or _failed:
+        return True
+    bdir = build_dir()
+    return (bdir / (module_name(bdir) + _LIB_EXT)).is_file()
+
+
 def camera_vector(camera, eps2d, near):
     from .cameras import EquirectCamera
 

@@ -484,7 +484,7 @@ class _DeferredInterrupt:
 def run(ctx: StageContext) -> TrainOutput:
     from rich.progress import TextColumn
 
-    from pipeline.console import console, make_progress
+    from pipeline.console import KEEP_FIELD, RecentRate, console, make_progress
 
     p: Params = ctx.params
     if p.threads:
@@ -505,6 +505,7 @@ def run(ctx: StageContext) -> TrainOutput:
     device = resolve_device(p.device, "train.device")
     cfg = make_config(p, len(views), extent, device)
 
+    kernel_build_s = build_kernel_first(p.backend, device)
     log_path = ctx.out_dir / "train_log.jsonl"
     trainer = Trainer(g, train_views, cfg, log_path=log_path)
     trainer.extra_fingerprint = init_fingerprint(g, train_views)
@@ -530,10 +531,11 @@ def run(ctx: StageContext) -> TrainOutput:
         TextColumn("loss {task.fields[loss]}"),
         TextColumn("PSNR {task.fields[psnr]}"),
         TextColumn("{task.fields[count]} G"),
-        TextColumn("{task.fields[rate]} it/s"),
+        (TextColumn("{task.fields[rate]} it/s"), KEEP_FIELD + 1),  # the current rate outlasts loss and PSNR
     )
-    t0 = time.perf_counter()
     start_it = trainer.iteration
+    rate = RecentRate()
+    rate.update(start_it, time.perf_counter())
     with _DeferredInterrupt() as stop, progress:
         task = progress.add_task(f"train ({init}, {p.projection}, {device})", total=cfg.iterations, completed=start_it,
                                  loss="-", psnr="-", count=len(trainer.g), rate="-")
@@ -543,10 +545,10 @@ def run(ctx: StageContext) -> TrainOutput:
                 # the loss and PSNR live on the device: reading them every iteration would sync
                 progress.update(task, completed=tr.iteration)
             else:
-                done = tr.iteration - start_it
-                rate = done / max(time.perf_counter() - t0, 1e-9)
+                per_s = rate.update(tr.iteration, time.perf_counter())
                 progress.update(task, completed=tr.iteration, loss=f"{float(tr.ema.loss):.4f}",
-                                psnr=f"{float(tr.ema.psnr):.2f}", count=len(tr.g), rate=f"{rate:.1f}")
+                                psnr=f"{float(tr.ema.psnr):.2f}", count=len(tr.g),
+                                rate="-" if per_s is None else f"{per_s:.1f}")
             if stop.requested:
                 console.print(f"interrupted: checkpoint at iteration {tr.iteration} -> {escape(str(ckpt))}; "
                               "rerun with --resume to continue")
@@ -584,6 +586,7 @@ def run(ctx: StageContext) -> TrainOutput:
         num_gaussians=len(final),
         iterations=trainer.iteration,
         train_seconds=round(trainer.train_seconds, 3),
+        kernel_build_seconds=None if kernel_build_s is None else round(kernel_build_s, 3),
         resolution=(height, 2 * height),
         sh_degree=final.sh_degree,
         init=init,
@@ -602,6 +605,27 @@ def run(ctx: StageContext) -> TrainOutput:
             k: round(v, 3) for k, v in trainer.part_seconds.items()},
         appearance="appearance.json" if trainer.appearance is not None else None,
     )
+
+
+def build_kernel_first(backend: str | None, device: str) -> float | None:
+    """Load the C++ CPU kernel before training, building it if this machine has no build yet, so
+    that its one-time build is a step of its own, not training time (the report's seconds, the
+    progress bar's rate); returns the build's seconds, None when nothing was built."""
+    from pipeline.console import console
+
+    if device != "cpu" or backend not in (None, "cpp"):
+        return None
+    from splatting import raster_cpp
+
+    if raster_cpp.is_built():
+        return None
+    console.print("train: compiling the C++ CPU kernel (once per machine; not counted as training)...")
+    t0 = time.perf_counter()
+    built = raster_cpp.load() is not None
+    seconds = time.perf_counter() - t0
+    console.print(f"train: C++ kernel {'built' if built else 'not built (the torch backend trains)'} "
+                  f"in {seconds:.1f} s")
+    return seconds
 
 
 def resolve_device(requested: str, field: str) -> str:

@@ -272,3 +272,17 @@ def test_report_shows_baseline_and_360_side_by_side(run_dir, sim_scene, tmp_path
     # one depth scale for both: the same model drawn twice gives the same picture
     a, b = (cv2.imread(str(rep.folder / "img" / f"ablate-{name}-{k}-depth.png")) for k in ("layout-init", "layout-reg"))
     assert np.array_equal(a, b)
+
+
+def test_sizes_read_height_by_width_and_the_kernel_build_is_apart(run_dir, sim_scene, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(run_dir, run)
+    art = json.loads((run / "train" / "artifact.json").read_text())
+    art["data"]["kernel_build_seconds"] = 61.25
+    (run / "train" / "artifact.json").write_text(json.dumps(art))
+    md = " ".join(build_report(run, sim_scene).markdown.read_text().split())
+    h, w = json.loads((run / "evaluate" / "artifact.json").read_text())["data"]["resolution"]
+    assert h < w  # a panorama: H×W reads e.g. 16×32, as the CLI and the settings say
+    assert f"for a {h}×{w} (H×W) panorama" in md and f"evaluated at {h}×{w}" in md and f"{w}×{h}" not in md
+    train_s = art["data"]["train_seconds"]
+    assert f"in {train_s:.1f} s of training (after 61.2 s compiling the C++ kernel, once per machine)" in md
