@@ -236,8 +236,8 @@ class Engine:
         try:
             params = spec.params.model_validate(self.config.get(name, {}))
         except ValidationError as e:
-            raise describe_validation_error(f"{self.config_source} [{name}]", e, list(spec.params.model_fields)
-                                            ) from None
+            raise describe_validation_error(f"{self.config_source} [{name}]", e, list(spec.params.model_fields),
+                                            listed_by=f"pano-pipe params {name}") from None
         files = {k: self._param_file(name, k, v) for k, v in params if isinstance(v, Path)}
         params = params.model_copy(update=files) if files else params
         return spec.resolve_params(self.scene, params) if spec.resolve_params else params

@@ -33,16 +33,24 @@ def did_you_mean(word: str, choices) -> str:
     return f" (did you mean {close[0]}?)" if close else ""
 
 
-def describe_validation_error(where: str | Path, err, valid_names=None) -> PanoError:
+def describe_validation_error(where: str | Path, err, valid_names=None, listed_by: str | None = None) -> PanoError:
     """Turn a pydantic ValidationError into a one-line PanoError naming the field; an unknown
-    field lists `valid_names` (the model's fields) when given."""
+    field names the closest few of `valid_names` (the model's fields) when given, and the command
+    that lists them all (`listed_by`), else all of them."""
+    import difflib
+
     first = err.errors()[0]
     field = ".".join(str(p) for p in first.get("loc", ()))
     msg = first.get("msg", "invalid")
     msg = msg.removeprefix("Value error, ")
     if first.get("type") == "extra_forbidden" and valid_names:
         name = str(first.get("loc", ("",))[-1])
-        msg = f"unknown parameter{did_you_mean(name, valid_names)}; valid ones: {', '.join(valid_names)}"
+        if listed_by:
+            closest = difflib.get_close_matches(name, [str(v) for v in valid_names], n=4, cutoff=0.0)
+            msg = (f"unknown parameter{did_you_mean(name, valid_names)}; the closest: {', '.join(closest)} "
+                   f"(`{listed_by}` lists all {len(valid_names)})")
+        else:
+            msg = f"unknown parameter{did_you_mean(name, valid_names)}; valid ones: {', '.join(valid_names)}"
     extra = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
     return PanoError(where, f"{field}: {msg}{extra}" if field else f"{msg}{extra}")
 

@@ -59,10 +59,11 @@ def test_projection_360_is_accepted_on_the_command_line(run, capsys):
     assert code == 0, err
 
 
-def test_unknown_parameter_lists_the_valid_ones(run, capsys):
-    code, out, err = run_cli(["status", run / "S", "--out", run / "R", "--set", "train.bogus=1"], capsys)
+def test_unknown_parameter_names_the_closest_few_and_the_params_command(run, capsys):
+    code, out, err = run_cli(["status", run / "S", "--out", run / "R", "--set", "train.iteratoins=1"], capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1
-    assert "bogus: unknown parameter; valid ones:" in err and "iterations" in err and "projection" in err
+    assert "iteratoins: unknown parameter (did you mean iterations?); the closest: iterations," in err
+    assert "(`pano-pipe params train` lists all" in err and "projection" not in err
 
 
 def test_run_stage_force_reruns_only_that_stage(run, capsys):
