@@ -1,6 +1,6 @@
 """CLI commands `pano-pipe report / ablate / sweep / render` (typer-compatible functions;
 pipeline/cli.py registers them). Run folders default to runs/<scene-name>/ exactly as
-`pano-pipe run` does (pipeline.cli.make_engine)."""
+`pano-pipe run` does (pipeline.settings.make_engine)."""
 
 from __future__ import annotations
 
@@ -12,23 +12,13 @@ import typer
 from rich.markup import escape
 
 from pipeline.console import console
+from pipeline.options import ConfigOpt, OutOpt, SceneArg, SetOpt
 from runfs.errors import PanoError
 from runfs.paths import run_path
 
-# Same option shapes as pipeline/cli.py (redeclared: cli imports this module, so importing
-# its annotations at module level would be circular).
-SceneArg = Annotated[Path, typer.Argument(help="Scene folder holding scene.json.", show_default=False)]
-OutOpt = Annotated[Optional[Path], typer.Option("--out", help="Run folder (default: runs/<scene-name>/).")]
-ConfigOpt = Annotated[
-    Optional[Path], typer.Option("--config", help="YAML or JSON file of stage parameters: {stage: {param: value}}.")
-]
-SetOpt = Annotated[
-    Optional[list[str]], typer.Option("--set", help="Override one parameter: STAGE.PARAM=VALUE (repeatable).")
-]
-
 
 def _engine(scene: Path, out: Path | None, config: Path | None = None, set_: list[str] | None = None):
-    from pipeline.cli import make_engine
+    from pipeline.settings import make_engine
 
     return make_engine(scene, out, config, set_)
 

@@ -256,9 +256,9 @@ def ablation_table(rows: list[AblationRow]) -> str:
 
 
 def plot_ablation(rows: list[AblationRow], path: Path) -> None:
-    from evaluation.report import _plt
+    from evaluation.visuals import pyplot
 
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 3.8))
     x = np.arange(len(rows))
     mus = [r.stat("psnr")[0] for r in rows]
@@ -543,9 +543,9 @@ def parse_grid(text: str, kind=int, allow_none: bool = False) -> list:
 
 
 def plot_sweep(points: list[SweepPoint], path: Path) -> None:
-    from evaluation.report import _plt
+    from evaluation.visuals import pyplot
 
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     pts = [p for p in points if p.psnr is not None]
     for ax, attr, flag, xlabel in (

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from evaluation.report_text import fmt, html_text, md_text, missing_fields, url
+from evaluation.visuals import pyplot
 from evaluation.report_sections import (STAGE_SECTIONS, SectionContext, export_links, read_artifact,
                                         settings_section, settings_without_effect)
 from runfs.errors import PanoError
@@ -139,15 +140,6 @@ def stage_durations(run_dir: Path) -> list[dict]:
 # ----------------------------------------------------------------------------- figures
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def plot_training_curves(series: dict[str, np.ndarray], path: Path, final_test: tuple[float, float, str] | None = None
                          ) -> list[str]:
     """The main training chart, large: loss (top) and PSNR (bottom) against iteration.
@@ -157,7 +149,7 @@ def plot_training_curves(series: dict[str, np.ndarray], path: Path, final_test: 
     drawn (empty: nothing to draw, no file written)."""
     if "loss" not in series and "psnr" not in series:
         return []
-    plt = _plt()
+    plt = pyplot()
     fig, (ax_l, ax_p) = plt.subplots(2, 1, figsize=(11, 8), sharex=True)
     labels: list[str] = []
     x = series["iteration"]
@@ -218,7 +210,7 @@ def plot_training_extra(series: dict[str, np.ndarray], path: Path) -> bool:
                    (("loss", "training loss", "C0"), ("psnr", "training PSNR (dB)", "C1")) if k in series]
     if not panels:
         return False
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 3.4), squeeze=False)
     for ax, (xk, yk, xlabel, title, colour) in zip(axes[0], panels):
         x, y = series[xk], series[yk]
@@ -239,7 +231,7 @@ def plot_durations(rows: list[dict], path: Path) -> bool:
     rows = [r for r in rows if r["duration_s"] is not None]
     if not rows:
         return False
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 0.45 * len(rows) + 1.0))
     names = [r["stage"] for r in rows][::-1]
     vals = [r["duration_s"] for r in rows][::-1]
@@ -273,7 +265,7 @@ def plot_floor_plan(scene, path: Path, rooms: list[dict] | None = None) -> list[
     Returns the camera labels written on the figure, in the scene's order (empty: nothing drawn)."""
     if scene is None or not scene.views:
         return []
-    plt = _plt()
+    plt = pyplot()
     from matplotlib.lines import Line2D
 
     fig, ax = plt.subplots(figsize=(8, 8))
@@ -343,18 +335,6 @@ def stage_params(run_dir: Path) -> dict[str, dict]:
             params = art.get("meta", {}).get("params")
             out[s] = params if isinstance(params, dict) else {}
     return out
-
-
-def flatten_params(params: dict, prefix: str = "") -> list[tuple[str, str]]:
-    """Nested parameters as (dotted name, value) rows; lists, booleans and None as JSON."""
-    rows = []
-    for k, v in params.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, dict) and v:
-            rows += flatten_params(v, key + ".")
-        else:
-            rows.append((key, v if isinstance(v, str) else json.dumps(v)))
-    return rows
 
 
 def write_config_yaml(path: Path, params: dict[str, dict], scene_name: str) -> None:

@@ -23,7 +23,8 @@ import numpy as np
 from evaluation.report_text import fmt
 
 __all__ = ["SectionContext", "STAGE_SECTIONS", "layout_section", "depth_alignment_section",
-           "settings_without_effect", "settings_section", "export_links", "stage_file"]
+           "settings_without_effect", "settings_section", "export_links", "stage_file", "read_artifact",
+           "flatten_params"]
 
 
 @dataclass
@@ -80,9 +81,9 @@ def plot_layout_view(image: np.ndarray, boundaries: np.ndarray, polygon: np.ndar
                      ceiling_distance: float, title: str, path: Path) -> None:
     """One training view: the panorama with the fitted ceiling and floor boundaries drawn on it (left)
     and the view's floor plan, seen from above in its camera frame (right)."""
-    from evaluation.report import _plt
+    from evaluation.visuals import pyplot
 
-    plt = _plt()
+    plt = pyplot()
     fig, (ax_i, ax_p) = plt.subplots(1, 2, figsize=(12, 3.6), gridspec_kw={"width_ratios": [2.6, 1]})
     h = image.shape[0]
     ax_i.imshow(np.clip(image, 0, 1), extent=(-0.5, image.shape[1] - 0.5, h - 0.5, -0.5),
@@ -372,10 +373,21 @@ def _train_panoramas(run_dir: Path, scene, td: dict) -> int | None:
         return None
 
 
+def flatten_params(params: dict, prefix: str = "") -> list[tuple[str, str]]:
+    """Nested parameters as (dotted name, value) rows; lists, booleans and None as JSON."""
+    rows = []
+    for k, v in params.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict) and v:
+            rows += flatten_params(v, key + ".")
+        else:
+            rows.append((key, v if isinstance(v, str) else json.dumps(v)))
+    return rows
+
+
 def settings_section(doc, params: dict[str, dict], not_applied: dict[tuple[str, str], str]) -> str | None:
     """Every stage parameter, collapsed: the ones set away from their default first, then the rest;
     a setting that had no effect says so and why (and is listed on its own above the table)."""
-    from evaluation.report import flatten_params
 
     doc.h(2, "Configuration", "config")
     if not params:

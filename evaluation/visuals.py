@@ -4,6 +4,16 @@ from __future__ import annotations
 
 import numpy as np
 
+def pyplot():
+    """matplotlib.pyplot on the file-only Agg backend (reports and experiments draw into PNGs)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 #: Error maps map |render − gt| (mean over channels) 0 … ERROR_VMAX onto inferno.
 ERROR_VMAX = 0.25
 

@@ -30,8 +30,8 @@ from rich.text import Text
 from rich.markup import escape
 
 from pipeline.console import console, err_console
+from pipeline.options import ConfigOpt, OutOpt, SceneArg, SetOpt
 from runfs.errors import PanoError, did_you_mean, one_line
-from runfs.paths import default_run_folder
 from schemas.scene import REAL_CAPTURE_NADIR_DEG
 
 app = typer.Typer(
@@ -45,17 +45,6 @@ bench_app = typer.Typer(help="Benchmarks: what accuracy costs in time.", no_args
 app.add_typer(bench_app, name="bench")
 
 _state = {"debug": False}
-
-SceneArg = Annotated[Path, typer.Argument(help="Scene folder holding scene.json.", show_default=False)]
-OutOpt = Annotated[
-    Optional[Path], typer.Option("--out", help="Run folder (default: runs/<scene-name>/).")
-]
-ConfigOpt = Annotated[
-    Optional[Path], typer.Option("--config", help="YAML or JSON file of stage parameters: {stage: {param: value}}.")
-]
-SetOpt = Annotated[
-    Optional[list[str]], typer.Option("--set", help="Override one parameter: STAGE.PARAM=VALUE (repeatable).")
-]
 
 
 def _version() -> str:
@@ -97,18 +86,8 @@ def _main(
 
 
 # -- helpers ------------------------------------------------------------------
-from pipeline.settings import SCENE_CONFIG, load_config, scene_config  # noqa: E402,F401 (tests use cli.load_config)
-
-
-def make_engine(scene_dir: Path, out: Path | None, config_file: Path | None, overrides: list[str] | None):
-    from pipeline.engine import Engine
-    from pipeline.registry import build_registry
-    from schemas.scene_loader import load_scene
-
-    scene = load_scene(scene_dir)
-    config, source = scene_config(scene.root, config_file, overrides)
-    out_dir = out if out is not None else default_run_folder(scene.name, scene.root)
-    return Engine(scene, out_dir, build_registry(), config, config_source=source)
+# tests and scripts call cli.load_config and cli.make_engine
+from pipeline.settings import SCENE_CONFIG, load_config, make_engine, scene_config  # noqa: E402,F401
 
 
 def command_flags(out: Path | None, config: Path | None, overrides: list[str] | None) -> str:

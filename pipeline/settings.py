@@ -120,3 +120,17 @@ def scene_config(scene_dir: Path, config_file: Path | None, overrides: list[str]
         base.setdefault(stage, {}).update(params)
     given = config_file is not None or bool(overrides)
     return base, (f"{own} < {source}" if given else str(own))
+
+
+def make_engine(scene_dir: Path, out: Path | None, config_file: Path | None, overrides: list[str] | None):
+    """The engine for a scene folder as every command sees it: the scene, its settings (its
+    pano-pipe.yaml, --config, --set) and its run folder (default runs/<scene-name>/)."""
+    from pipeline.engine import Engine
+    from pipeline.registry import build_registry
+    from runfs.paths import default_run_folder
+    from schemas.scene_loader import load_scene
+
+    scene = load_scene(scene_dir)
+    config, source = scene_config(scene.root, config_file, overrides)
+    out_dir = out if out is not None else default_run_folder(scene.name, scene.root)
+    return Engine(scene, out_dir, build_registry(), config, config_source=source)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 from rich.markup import escape
@@ -12,10 +12,11 @@ from rich.markup import escape
 from pipeline.console import console
 from pipeline.signals import Terminated
 
-# Same option shapes as pipeline/cli.py (redeclared: cli imports this module).
+from pipeline.options import OutOpt
+
+# the viewer also takes a run folder: its own help for the shared argument
 SceneArg = Annotated[Path, typer.Argument(
     help="Scene folder holding scene.json, or a run folder.", show_default=False)]
-OutOpt = Annotated[Optional[Path], typer.Option("--out", help="Run folder (default: runs/<scene-name>/).")]
 
 
 def view_command(
