@@ -15,7 +15,9 @@
    (its boundary's bounding-box diagonal) closed by a flat triangulated patch (pymeshlab
    close_holes), and the
    degenerate (zero-height) faces the patches can leave split away exactly (`split_degenerate`),
-   so the room comes out watertight unless an opening is larger (docs/export.md).
+   so the room comes out watertight unless an opening is larger (docs/export.md). Coincident
+   vertices are welded into one (`weld_coincident`): trimesh merges them on load and open3d
+   does not, and both must see the closed surface the export claims.
 5. Colour: each vertex takes the colour of its nearest input point.
 """
 
@@ -27,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["OrientedPoints", "MeshResult", "points_from_depth", "points_from_centres", "reconstruct",
-           "write_mesh", "close_holes", "split_degenerate", "boundary_loops", "mesh_topology"]
+           "write_mesh", "close_holes", "split_degenerate", "weld_coincident", "boundary_loops", "mesh_topology"]
 
 #: A face whose smallest altitude is below this (metres) is degenerate: it has no area to draw.
 DEGENERATE_HEIGHT_M = 1e-6
@@ -138,6 +140,7 @@ def reconstruct(op: OrientedPoints, depth: int = 8, max_gap: float | None = None
     close_holes(ms, max_hole_m)
     m = ms.current_mesh()
     verts, faces = split_degenerate(m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64))
+    verts, faces = weld_coincident(verts, faces)
     if len(faces) == 0:
         raise ValueError("the reconstructed surface is empty after cleaning")
     _, idx = tree.query(verts, k=1)
@@ -285,6 +288,26 @@ def _collapse_short_edges(v: np.ndarray, f: np.ndarray, length: float) -> np.nda
         mapping[i] = root(i)
     f = mapping[f]
     return f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
+
+
+#: Vertices closer than this in every coordinate are one (trimesh merges at 1e-8 on load).
+WELD_DECIMALS = 8
+
+
+def weld_coincident(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One vertex per position (rounded to WELD_DECIMALS), the faces that then repeat a vertex or
+    another face dropped. Readers merge coincident vertices on load (trimesh by default) or count
+    them as separate (open3d): welded, both see the same surface, and the watertight claim holds
+    for each."""
+    keys = np.round(np.asarray(vertices, dtype=np.float64), WELD_DECIMALS)
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)  # kept vertices in their original order
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    f = rank[inverse.reshape(-1)][faces]
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
+    _, once = np.unique(np.sort(f, axis=1), axis=0, return_index=True)
+    return np.asarray(vertices, dtype=np.float64)[first[order]], f[np.sort(once)]
 
 
 def mesh_topology(vertices: np.ndarray, faces: np.ndarray) -> dict:
