@@ -210,5 +210,5 @@ def render_command(
     g = load_model(train.path(train.data.ply))
     target = output_path(run_path(engine.out_dir, "render"), path, "persp" if persp else "pano", overwrite=overwrite)
     res = render_flythrough(g, poses, camera, target, fps=fps, backend=backend, track=track)
-    console.print(f"[bold]video:[/] {escape(str(res.path))} ({res.frames} frames, {res.size[1]}×{res.size[0]}, "
+    console.print(f"[bold]video:[/] {escape(str(res.path))} ({res.frames} frames, {res.size[0]}×{res.size[1]} (H×W), "
                   f"H.264, {fps:g} fps, {res.frames / max(res.seconds, 1e-9):.1f} frames/s rendered)")

@@ -98,7 +98,7 @@ def complete_scene(scene: Scene, artifact: Loaded) -> Scene:
 def _panoramas(ctx: StageContext, height: int) -> list[Panorama]:
     scene = ctx.scene
     out = []
-    for view in ctx.track(scene.views, f"loading panoramas ({2 * height}x{height})"):
+    for view in ctx.track(scene.views, f"loading panoramas ({height}x{2 * height})"):
         rgb = read_rgb(scene.image_path(view), (height, 2 * height))
         out.append(Panorama(view.name, (rgb * 255.0 + 0.5).astype(np.uint8),
                             valid_mask(scene, view, height, 2 * height)))

@@ -368,7 +368,7 @@ def _renderer(h: ViewerHandle, status):
         try:
             pano = h.render_panorama(c2w, height)
             status.content = (f"Saved `{shown_path(pano.path)}` "
-                              f"({pano.image.shape[1]}×{pano.image.shape[0]}, {pano.seconds:.2f} s).")
+                              f"({pano.image.shape[0]}×{pano.image.shape[1]} H×W, {pano.seconds:.2f} s).")
         except Exception as exc:  # a failed render must not kill the server
             status.content = f"Render failed: {type(exc).__name__}: {exc}"
         finally:
