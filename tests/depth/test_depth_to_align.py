@@ -72,7 +72,7 @@ def test_run_uses_a_cached_depth_model_and_fits_affine_inverse_depth_per_view(
     metadata) and align fits scale and shift in inverse depth per view."""
     from depthnet.runner import write_metadata
     from models.registry import get_model
-    from models.store import onnx_path
+    from models.store import onnx_path, write_record
     from pipeline.engine import Engine, load_artifact
     from pipeline.registry import build_registry
     from stages import align
@@ -93,6 +93,7 @@ def test_run_uses_a_cached_depth_model_and_fits_affine_inverse_depth_per_view(
     dk.export(dk.PerspectiveFace(32, 100.0, "disparity"), cached, (1, 3, 32, 32))
     write_metadata(cached, {"output": "disparity", "projection": "cubemap", "face_fov_deg": 100.0},
                    {"architecture": "stand-in"})
+    write_record(get_model("depth-anything-v2-small"), "stand-in")  # as `models fetch` leaves it: trusted
     off = Engine(scene, tmp_path / "run", build_registry(), {**config, "depth": {"model": "none"}}).plan()
     assert off["depth"].state == "skipped"  # `none`: files only, the cached model is not used
     engine = Engine(scene, tmp_path / "run", build_registry(), config)
