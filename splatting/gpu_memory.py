@@ -11,9 +11,9 @@ from .project import PACK
 from .project_triton import INTS
 
 # The backward's peak, float32, per Gaussian and per pixel: measured with the allocation tracker
-# on small scenes (docs/gpu.md), not derived: most of it is autograd's saved intermediates of the
-# torch recomputation of the projection (splatting.project.project) plus the packed-row gradients.
-BACKWARD_BYTES_PER_GAUSSIAN_F32 = 945
+# on small scenes with RGB colours (docs/gpu.md), not derived: the packed rows' gradient and the
+# projection backward kernel's outputs (means, quaternions, scales, opacities, colours, means2d).
+BACKWARD_BYTES_PER_GAUSSIAN_F32 = 174
 BACKWARD_BYTES_PER_PIXEL_F32 = 24
 
 
