@@ -838,7 +838,9 @@ def _write_report(run_dir: Path, scene, out_dir: Path, states: dict[str, str] | 
             sections.append(section_id)
 
     # -- configuration: non-default values first, the full table folded; settings without effect named
-    if settings_section(doc, params, not_applied):
+    train_art = read_artifact(run_dir, "train")
+    used = {"train": (train_art.get("data") or {}).get("settings") or {}} if train_art else {}
+    if settings_section(doc, params, not_applied, used):
         sections.append("config")
 
     # -- durations

@@ -247,13 +247,6 @@ def export_links(run_dir: Path) -> list[tuple[Path, str]]:
 # ----------------------------------------------------------------------------- settings without effect
 
 
-def _resolved(params: dict, key: str, preset_table: dict):
-    v = params.get(key)
-    if v is None:
-        v = preset_table.get(params.get("preset", "fast"), {}).get(key)
-    return v
-
-
 def settings_without_effect(run_dir: Path, scene=None) -> dict[tuple[str, str], str]:
     """{(stage, parameter): why it had no effect} for the settings of this run that did nothing,
     from what each stage's artifact records it did (not from what was asked)."""
@@ -262,10 +255,7 @@ def settings_without_effect(run_dir: Path, scene=None) -> dict[tuple[str, str], 
     if tr is not None:
         p = (tr.get("meta") or {}).get("params") or {}
         td = tr["data"]
-        try:
-            from stages.train import PRESETS
-        except ImportError:  # pragma: no cover - the stage always ships with the report
-            PRESETS = {}
+        used = td.get("settings") or {}  # the values training used (a preset's filled in)
         init = td.get("init")
         if p.get("layout_reg", True) and init in ("random", "depth"):
             why = (f"no layout cloud: the model started from {init} points, so L_layout had no layout "
@@ -292,14 +282,14 @@ def settings_without_effect(run_dir: Path, scene=None) -> dict[tuple[str, str], 
                     out[("train", k)] = f"used by projection 'crops' only; this model is '{projection}'"
         # schedules: only settings the user changed are named (a preset's own schedule is by design)
         iterations = td.get("iterations")
-        start = _resolved(p, "densify_from", PRESETS)
+        start = used.get("densify_from")
         if isinstance(iterations, int) and isinstance(start, int) and start >= iterations:
             for k in ("densify_from", "densify_until", "densify_every", "densify_grad_threshold",
                       "percent_dense", "max_gaussians"):
                 if k in p and not _same(p[k], _default("train", k)):
                     out[("train", k)] = (f"densification never ran: it starts at iteration {start}, training "
                                          f"stopped at {iterations}")
-        reset = _resolved(p, "opacity_reset_every", PRESETS)
+        reset = used.get("opacity_reset_every")
         if isinstance(iterations, int) and isinstance(reset, int) and 0 < iterations <= reset \
                 and p.get("opacity_reset_every") is not None:
             out[("train", "opacity_reset_every")] = (f"no opacity reset happened: the first is due at "
@@ -385,9 +375,31 @@ def flatten_params(params: dict, prefix: str = "") -> list[tuple[str, str]]:
     return rows
 
 
-def settings_section(doc, params: dict[str, dict], not_applied: dict[tuple[str, str], str]) -> str | None:
-    """Every stage parameter, collapsed: the ones set away from their default first, then the rest;
-    a setting that had no effect says so and why (and is listed on its own above the table)."""
+def _run_defaults(stage: str, params: dict) -> dict:
+    """{parameter: its default in this run}: the stage's Params.default(key) where its defaults
+    depend on other settings (train's preset and projection), else the field's default."""
+    from pipeline.registry import build_registry
+
+    spec = build_registry().get(stage)
+    if spec is not None and hasattr(spec.params, "default"):
+        try:
+            obj = spec.params.model_validate(params)
+            return {k: _json_value(obj.default(k)) for k in spec.params.model_fields}
+        except ValueError:  # parameters a later version no longer accepts: the fields' defaults
+            pass
+    return _registry_defaults().get(stage, {})
+
+
+def _json_value(v):
+    return list(v) if isinstance(v, tuple) else v
+
+
+def settings_section(doc, params: dict[str, dict], not_applied: dict[tuple[str, str], str],
+                     used: dict[str, dict] | None = None) -> str | None:
+    """Every stage parameter: the value used (``used[stage]``, what a stage's artifact records it
+    resolved, e.g. train's preset values, else the value recorded), its default in this run and
+    what was changed; the changed ones first, all of them in a fold. A setting that had no effect
+    says so and why (and is listed on its own above the table)."""
 
     doc.h(2, "Configuration", "config")
     if not params:
@@ -399,17 +411,22 @@ def settings_section(doc, params: dict[str, dict], not_applied: dict[tuple[str, 
                   [[f"{st}.{k}", _value_text(params.get(st, {}).get(k)), why]
                    for (st, k), why in not_applied.items()])
     changed, default = [], []
-    for st, p in params.items():
+    for st, recorded in params.items():
+        p = {k: (used or {}).get(st, {}).get(k, v) if v is None else v for k, v in recorded.items()}
+        defaults = _run_defaults(st, recorded)
         for k, v in flatten_params(p) or [("(none recorded)", "")]:
             top = k.split(".")[0]
             note = ("not applied: " + not_applied[(st, top)]) if (st, top) in not_applied else ""
-            d = _default(st, top) if top in p else UNKNOWN
+            d = defaults.get(top, UNKNOWN) if top in p else UNKNOWN
             is_default = d is not UNKNOWN and _same(p[top], d)
-            shown = "" if is_default else ("—" if d is UNKNOWN else _value_text(d))
-            (default if is_default else changed).append([f"{st}.{k}", v, shown, note])
+            if not is_default:
+                note = "changed" + (f"; {note}" if note else "")
+            (default if is_default else changed).append([f"{st}.{k}", v, "—" if d is UNKNOWN else _value_text(d),
+                                                         note])
     doc.p(f"{len(changed)} parameter{'s' if len(changed) != 1 else ''} set away from the default, "
-          f"{len(default)} at the default; the same as YAML in config.yaml beside this report.")
-    header = ["parameter", "value", "default", "note"]
+          f"{len(default)} at the default; values are those used (a preset's filled in); config.yaml "
+          "beside this report has the settings as given.")
+    header = ["parameter", "value used", "default", "note"]
     if changed:
         doc.table(header, changed)
     doc.details(f"all {len(changed) + len(default)} parameters (defaults included)", header,

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
@@ -60,3 +60,6 @@ class TrainOutput(BaseModel):
                                   "(timing a GPU step would wait for the device at every part).")
     appearance: str | None = Field(default=None, description="appearance.json: each training panorama's "
                                                             "learned colour gain and bias (train.appearance).")
+    settings: dict[str, Any] = Field(
+        default_factory=dict, description="Every train setting's value used: as set, else the preset's, else the "
+                                          "projection's default (the report shows these, not the unset nulls).")

@@ -217,9 +217,21 @@ class Params(StageParams):
         v = getattr(self, key)
         if v is not None:
             return v
+        return self.default(key)
+
+    def default(self, key: str):
+        """What `key` is when left unset, with this preset and projection: the preset's value, else
+        the projection's default, else the field's own."""
         if key in PRESETS[self.preset]:
             return PRESETS[self.preset][key]
-        return PROJECTION_DEFAULTS[self.projection].get(key)
+        if key in PROJECTION_DEFAULTS[self.projection]:
+            return PROJECTION_DEFAULTS[self.projection][key]
+        return type(self).model_fields[key].get_default(call_default_factory=True)
+
+    def values_used(self) -> dict:
+        """Every setting's value used (``resolved``), as JSON data."""
+        return {k: list(v) if isinstance(v, tuple) else v for k in type(self).model_fields
+                for v in (self.resolved(k),)}
 
     @model_validator(mode="after")
     def _crops_form_rings(self):
@@ -604,6 +616,8 @@ def run(ctx: StageContext) -> TrainOutput:
         step_seconds=None if trainer.part_seconds is None else {
             k: round(v, 3) for k, v in trainer.part_seconds.items()},
         appearance="appearance.json" if trainer.appearance is not None else None,
+        # lambda_layout and coverage_height are settled by make_config (view count, height)
+        settings={**p.values_used(), "lambda_layout": cfg.lambda_layout, "coverage_height": cfg.coverage_height},
     )
 
 

@@ -92,7 +92,7 @@ def test_settings_without_effect_are_named_with_their_reason(bare_run, tmp_path)
     md = build_report(run, scene, out_dir=tmp_path / "rep").markdown.read_text()
     assert "Settings that had no effect" in md and "| train.layout_reg | true | no layout cloud" in md
     assert re.search(r"\| train\.layout_reg \| true \|[^|]*\| not applied: no layout cloud", md)
-    assert "| layout regularisation | True (not applied: no layout cloud" in md  # the training summary too
+    assert "| layout regularisation | yes (not applied: no layout cloud" in md  # the training summary too
 
 
 def test_layout_regularisation_counts_as_applied_with_a_layout(full_run):
@@ -114,9 +114,14 @@ def test_configuration_lists_changed_values_first_and_folds_the_rest(full_run, t
     md = build_report(run, load_scene(scene_dir), out_dir=tmp_path / "rep").markdown.read_text()
     config = md[md.index("## Configuration"):md.index("## Stage durations")]
     first_table, folded = config.split("<details>", 1)
-    assert "| train.iterations | 4 |" in first_table and "| evaluate.lpips | false | true |" in first_table
+    assert "| train.iterations | 4 | 2000 | changed |" in first_table  # the fast preset's 2,000 as the default
+    assert "| evaluate.lpips | false | true | changed |" in first_table
     assert "train.lr_opacity" not in first_table  # at its default: only in the folded table
     assert "train.lr_opacity" in folded and "</details>" in folded
+    # settings left unset show the value training used (the preset's, the projection's), as their
+    # default: not null (issue 40)
+    assert "| train.max_gaussians | 50000 | 50000 |" in folded and "| train.eps2d | 0.05 | 0.05 |" in folded
+    assert "| train.random_turns | true | true |" in folded and "| train.lambda_layout | null" not in config
     html = (tmp_path / "rep" / "report.html").read_text()
     assert "<details><summary>all " in html
 
