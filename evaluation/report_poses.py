@@ -12,31 +12,30 @@ from pathlib import Path
 import numpy as np
 
 from evaluation.report_text import fmt
+from schemas.poses import PosesOutput
 
 
-def plot_pair_graph(data: dict, path: Path) -> bool:
+def plot_pair_graph(data: PosesOutput, path: Path) -> bool:
     """The placed cameras seen from above (world x right, z up the page) joined by the pairs
     the upright solver tried: kept pairs solid, their width and label the inliers; pairs it
     verified but dropped dashed red. False when there is nothing to draw."""
-    poses = {v["view"]: np.asarray(v["pose"]) for v in data["views"] if v.get("registered") and v.get("pose")}
+    poses = {v.view: np.asarray(v.pose) for v in data.views if v.registered and v.pose is not None}
     if not poses:
         return False
-    import matplotlib
+    from evaluation.visuals import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 6))
-    top = max([p["inliers"] for p in data.get("pairs", [])] or [1])
-    for p in data.get("pairs", []):
-        if p["a"] not in poses or p["b"] not in poses or p["inliers"] == 0:
+    top = max([p.inliers for p in data.pairs] or [1])
+    for p in data.pairs:
+        if p.a not in poses or p.b not in poses or p.inliers == 0:
             continue
-        a, b = poses[p["a"]][[0, 2], 3], poses[p["b"]][[0, 2], 3]
-        style = {"color": "tab:blue", "lw": 0.5 + 3.0 * p["inliers"] / top} if p["used"] else \
+        a, b = poses[p.a][[0, 2], 3], poses[p.b][[0, 2], 3]
+        style = {"color": "tab:blue", "lw": 0.5 + 3.0 * p.inliers / top} if p.used else \
             {"color": "tab:red", "lw": 0.8, "ls": "--"}
         ax.plot([a[0], b[0]], [a[1], b[1]], zorder=1, **style)
         mid = (a + b) / 2
-        ax.annotate(str(p["inliers"]), mid, fontsize=6, color=style["color"], ha="center", va="center",
+        ax.annotate(str(p.inliers), mid, fontsize=6, color=style["color"], ha="center", va="center",
                     bbox={"boxstyle": "round,pad=0.1", "fc": "white", "ec": "none", "alpha": 0.7})
     for name, pose in poses.items():
         x, z = pose[0, 3], pose[2, 3]
@@ -56,47 +55,41 @@ def plot_pair_graph(data: dict, path: Path) -> bool:
 def add_poses_section(doc, run_dir: Path) -> bool:
     """Append the poses section to the report `doc` (evaluation.report's _Doc); False (nothing
     added) when the run has no poses artifact, i.e. every pose came from scene.json."""
-    from evaluation.report_sections import read_artifact
+    from pipeline.engine import read_output
 
-    art = read_artifact(run_dir, "poses")
-    if art is None:
+    data: PosesOutput | None = read_output(run_dir, "poses")
+    if data is None:
         return False
-    data = art["data"]
-    views = data.get("views", [])
-    placed = sum(bool(v.get("registered")) for v in views)
+    views = data.views
+    placed = sum(v.registered for v in views)
     doc.h(2, "Poses", "poses")
-    method = data.get("method", "?")
-    reason = data.get("method_reason") or ""
-    doc.p(f"{placed} of {len(views)} views placed by {method}"
-          + (f" (poses.method={data.get('requested_method')}: {reason})" if reason else "")
-          + f"; scale {fmt(data.get('scale'), '.4g')} m per unit "
-            f"± {fmt(100 * (data.get('scale_uncertainty') or 0), '.2g')} % "
-            f"from the {data.get('frame')}; {data.get('points', 0)} sparse points"
-          + (f", median angular residual {fmt(data['residual_deg'], '.3f')}°" if data.get("residual_deg") is not None
+    reason = data.method_reason
+    doc.p(f"{placed} of {len(views)} views placed by {data.method}"
+          + (f" (poses.method={data.requested_method}: {reason})" if reason else "")
+          + f"; scale {fmt(data.scale, '.4g')} m per unit ± {fmt(100 * data.scale_uncertainty, '.2g')} % "
+            f"from the {data.frame}; {data.points} sparse points"
+          + (f", median angular residual {fmt(data.residual_deg, '.3f')}°" if data.residual_deg is not None
              else "") + ".")
-    left_out = data.get("left_out") or {}
-    if left_out:
-        doc.p("Left out: " + "; ".join(f"{k}: {why}" for k, why in left_out.items()) + ".", "warn")
+    if data.left_out:
+        doc.p("Left out: " + "; ".join(f"{k}: {why}" for k, why in data.left_out.items()) + ".", "warn")
     figures = []
-    drawing = Path(run_dir) / "poses" / data.get("drawing", "cameras.png")
+    drawing = Path(run_dir) / "poses" / data.drawing
     if drawing.is_file():
         figures.append((drawing, "cameras over the sparse points (from above)"))
     graph = doc.img_dir / "poses-pair-graph.png"
-    if data.get("pairs") and plot_pair_graph(data, graph):
+    if data.pairs and plot_pair_graph(data, graph):
         figures.append((graph, "pair graph with inlier counts"))
     if figures:
         doc.images(figures, "poses")
-    attempts = data.get("attempts") or []
-    if len(attempts) > 1:
+    if len(data.attempts) > 1:
         doc.table(["method", "placed", "seconds", "outcome"],
-                  [[a["method"], str(a["placed"]), fmt(a.get('seconds'), '.1f'), a.get("failure") or "placed"]
-                   for a in attempts])
-    pairs = data.get("pairs") or []
-    if pairs:
+                  [[a.method, str(a.placed), fmt(a.seconds, ".1f"), a.failure or "placed"]
+                   for a in data.attempts])
+    if data.pairs:
         doc.table(["pair", "inliers", "kept"],
-                  [[f"{p['a']} – {p['b']}", str(p["inliers"]) if p["inliers"] else "not verified",
-                    "yes" if p["used"] else "no"] for p in pairs])
+                  [[f"{p.a} – {p.b}", str(p.inliers) if p.inliers else "not verified", fmt(p.used)]
+                   for p in data.pairs])
     doc.table(["view", "placed", "given", "observations", "residual (px)"],
-              [[v["view"], "yes" if v.get("registered") else "no", "yes" if v.get("given") else "no",
-                str(v.get("observations", 0)), fmt(v.get("reprojection_error_px"), '.3g')] for v in views])
+              [[v.view, fmt(v.registered), fmt(v.given), str(v.observations),
+                fmt(v.reprojection_error_px, ".3g")] for v in views])
     return True
