@@ -40,7 +40,8 @@ def build_registry() -> dict[str, StageSpec]:
         ),
         StageSpec(
             "layout", layout.Params, layout.Output, layout.run, reads_views=layout.selected_views,
-            scene_inputs=("images", "layout"), skip_reason=layout.skip_reason, run_reason=layout.run_reason,
+            # poses: the camera heights it recovers complete the views scene.json gives none
+            inputs={"poses": False}, scene_inputs=("images", "layout"), skip_reason=layout.skip_reason, run_reason=layout.run_reason,
             resolve_params=layout.resolve_params, hint=layout.hint,
             description="room layout per view (supplied boundaries, or a HorizonNet model on the aligned panorama)",
         ),

@@ -21,6 +21,9 @@ class ViewPose(BaseModel):
         default=None, description="Given poses: distance between the fitted and the given camera centre (m).")
     residual_deg: float | None = Field(
         default=None, description="Given poses: angle between the fitted and the given orientation (degrees).")
+    camera_height: float | None = Field(
+        default=None, description="The camera's height over the floor the stage fitted (m; None: no floor was "
+                                  "fitted). Views without camera_height in scene.json take it downstream.")
 
 
 class UprightPairReport(BaseModel):

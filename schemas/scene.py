@@ -177,11 +177,21 @@ class Scene(BaseModel):
     def path(self, rel: str, named_by: str | None = None) -> Path:
         return scene_file(self.root, rel, named_by)
 
-    def with_poses(self, poses: dict[str, Matrix4]) -> Scene:
-        """This scene with the missing poses filled in from `poses` (view name -> camera-to-world);
-        a pose the manifest gives is kept, and a view left without one is left out."""
-        views = [v.model_copy(update={"pose": poses[v.name]}) if v.pose is None and v.name in poses else v
-                 for v in self.manifest.views]
+    def with_poses(self, poses: dict[str, Matrix4], heights: dict[str, float] | None = None) -> Scene:
+        """This scene with the missing poses filled in from `poses` (view name -> camera-to-world)
+        and the missing camera heights from `heights`; a pose or height the manifest gives is kept,
+        and a view left without a pose is left out."""
+        heights = heights or {}
+
+        def completed(v):
+            update = {}
+            if v.pose is None and v.name in poses:
+                update["pose"] = poses[v.name]
+            if v.camera_height is None and v.name in heights:
+                update["camera_height"] = heights[v.name]
+            return v.model_copy(update=update) if update else v
+
+        views = [completed(v) for v in self.manifest.views]
         manifest = self.manifest.model_copy(update={"views": [v for v in views if v.pose is not None]})
         return Scene(root=self.root, manifest=manifest)
 

@@ -68,6 +68,8 @@ class Alignment:
     #: known views only: distance (m) and angle (degrees) between the fitted and the given pose
     residual_m: dict[str, float] = field(default_factory=dict)
     residual_deg: dict[str, float] = field(default_factory=dict)
+    #: each placed camera's height over the fitted floor (metres); empty when no floor was fitted
+    camera_heights: dict[str, float] = field(default_factory=dict)
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -172,8 +174,9 @@ def align_to_floor(cam_to_world: dict[str, np.ndarray], points: np.ndarray, heig
     floor = fit_floor(points @ up.T, centres, min_depression_deg=min_depression_deg)
     tilt = None if floor is None else rotation_angle_deg(rotation_between(floor.normal, np.array([0.0, 1.0, 0.0])))
     if scale is not None:
+        measured = {} if floor is None else dict(zip(names, (scale * floor.height_above(centres)).tolist()))
         return Alignment(Similarity(scale, up, -scale * centres[0]), 0.0, "given scale", floor=floor,
-                         floor_tilt_deg=tilt)
+                         floor_tilt_deg=tilt, camera_heights=measured)
     if floor is None:
         raise ValueError("no floor plane among the sparse points below the cameras, so no metric scale")
     d = floor.height_above(centres)
@@ -181,7 +184,8 @@ def align_to_floor(cam_to_world: dict[str, np.ndarray], points: np.ndarray, heig
         raise ValueError("the fitted floor plane is not below every camera")
     scale, uncertainty = metric_scale(d, np.array([heights[v] for v in names]), floor)
     transform = Similarity(scale, up, -scale * centres[0])
-    return Alignment(transform, uncertainty, "floor", floor=floor, floor_tilt_deg=tilt)
+    return Alignment(transform, uncertainty, "floor", floor=floor, floor_tilt_deg=tilt,
+                     camera_heights=dict(zip(names, (scale * d).tolist())))
 
 
 def align_to_known(cam_to_world: dict[str, np.ndarray], known: dict[str, np.ndarray], points: np.ndarray,
@@ -193,7 +197,7 @@ def align_to_known(cam_to_world: dict[str, np.ndarray], known: dict[str, np.ndar
     src = np.array([cam_to_world[v][:3, 3] for v in names]) @ rotation.T
     dst = np.array([known[v][:3, 3] for v in names])
     src_c, dst_c = src - src.mean(axis=0), dst - dst.mean(axis=0)
-    uncertainty, floor, source = 0.0, None, "known poses"
+    uncertainty, floor, source, camera_heights = 0.0, None, "known poses", {}
     if len(names) >= 2 and np.linalg.norm(src_c) > 0 and np.linalg.norm(dst_c) > 0:
         scale = float(np.sum(src_c * dst_c) / np.sum(src_c * src_c))
         if not scale > 0:  # the given positions are the recovered ones mirrored: no rigid world fits
@@ -206,13 +210,15 @@ def align_to_known(cam_to_world: dict[str, np.ndarray], known: dict[str, np.ndar
         floor_fit = align_to_floor(cam_to_world, points, heights, order)
         scale, uncertainty, floor = floor_fit.transform.scale, floor_fit.scale_uncertainty, floor_fit.floor
         source = "known pose and floor"
+        camera_heights = floor_fit.camera_heights
     transform = Similarity(scale, rotation, dst.mean(axis=0) - scale * src.mean(axis=0))
     res_m, res_deg = {}, {}
     for v in names:
         fitted = transform.pose(cam_to_world[v])
         res_m[v] = float(np.linalg.norm(fitted[:3, 3] - known[v][:3, 3]))
         res_deg[v] = rotation_angle_deg(fitted[:3, :3].T @ known[v][:3, :3])
-    return Alignment(transform, uncertainty, source, floor=floor, residual_m=res_m, residual_deg=res_deg)
+    return Alignment(transform, uncertainty, source, floor=floor, residual_m=res_m, residual_deg=res_deg,
+                     camera_heights=camera_heights)
 
 
 def pose_errors(recovered: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -> dict[str, tuple[float, float]]:

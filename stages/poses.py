@@ -91,8 +91,12 @@ def run_reason(scene: Scene, params: Params) -> str:
 
 
 def complete_scene(scene: Scene, artifact: Loaded) -> Scene:
-    """The scene with the recovered poses filled in, unregistered views left out."""
-    return scene.with_poses({v.view: v.pose for v in artifact.data.views if v.registered and v.pose is not None})
+    """The scene with the recovered poses filled in, unregistered views left out, and the camera
+    heights over the fitted floor given to the views scene.json gives none (one source of truth:
+    the layout stage then uses the heights the poses were made metric with, issue 36)."""
+    placed = [v for v in artifact.data.views if v.registered and v.pose is not None]
+    return scene.with_poses({v.view: v.pose for v in placed},
+                            {v.view: v.camera_height for v in placed if v.camera_height is not None})
 
 
 def _panoramas(ctx: StageContext, height: int) -> list[Panorama]:
@@ -301,7 +305,8 @@ def _output(ctx: StageContext, chosen: _Solved, attempts: list[_Solved], reason:
             view=view.name, registered=True, pose=pose.tolist(), given=given,
             reprojection_error_px=result.reprojection_error[view.name],
             observations=result.observations[view.name],
-            residual_m=alignment.residual_m.get(view.name), residual_deg=alignment.residual_deg.get(view.name)))
+            residual_m=alignment.residual_m.get(view.name), residual_deg=alignment.residual_deg.get(view.name),
+            camera_height=_rounded(alignment.camera_heights.get(view.name))))
 
     points = transform.points(result.points)
     write_ply(ctx.out_dir / PLY_NAME, points, result.colors / 255.0, np.zeros_like(points))
@@ -332,6 +337,10 @@ def _output(ctx: StageContext, chosen: _Solved, attempts: list[_Solved], reason:
         mean_track_length=float(result.track_length.mean()) if len(points) else 0.0,
         verified_pairs=result.verified_pairs, sparse_points=PLY_NAME, drawing=DRAWING_NAME,
         timings_s={**result.timings, "total": chosen.seconds})
+
+
+def _rounded(height: float | None) -> float | None:
+    return None if height is None else round(float(height), 4)
 
 
 def summary(data: PosesOutput) -> str:
