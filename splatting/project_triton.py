@@ -80,6 +80,28 @@ if triton is not None:
         return tl.abs(x) < float("inf")
 
     @triton.jit
+    def _unit_quat(qw, qx, qy, qz):
+        """q / |q| and 1/|q| (|q|² floored at 1e-24: the zero quaternion gives the identity)."""
+        inv = 1.0 / tl.sqrt(tl.maximum(qw * qw + qx * qx + qy * qy + qz * qz, 1e-24))
+        return qw * inv, qx * inv, qy * inv, qz * inv, inv
+
+    @triton.jit
+    def _rotation(qw, qx, qy, qz):
+        """R(q) of a unit quaternion, row by row."""
+        return (1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy),
+                2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx),
+                2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy))
+
+    @triton.jit
+    def _tangent_basis(nx, ny, nz):
+        """Duff et al.'s basis (e1, e2) of the tangent plane at unit n, with its sign and
+        a = −1/(sign + n_z) (the backward differentiates through them)."""
+        sign = tl.where(nz >= 0, 1.0, -1.0)
+        a = -1.0 / (sign + nz)
+        b = nx * ny * a
+        return sign, a, 1.0 + sign * nx * nx * a, sign * b, -sign * nx, b, sign + ny * ny * a, -ny
+
+    @triton.jit
     def _project_fwd(means, quats, scales, opac, colors, viewmat, cam, packed, ints, visible, m2d, N, H, W, TS,
                      EQUIRECT: tl.constexpr, SH_DEGREE: tl.constexpr, K: tl.constexpr, BLOCK: tl.constexpr):
         i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
@@ -129,21 +151,8 @@ if triton is not None:
         nx = tx / dist
         ny = ty / dist
         nz = tz / dist
-        # R(q), normalised (the zero quaternion gives the identity)
-        qn = 1.0 / tl.sqrt(tl.maximum(qw * qw + qx * qx + qy * qy + qz * qz, 1e-24))
-        qw = qw * qn
-        qx = qx * qn
-        qy = qy * qn
-        qz = qz * qn
-        q00 = 1 - 2 * (qy * qy + qz * qz)
-        q01 = 2 * (qx * qy - qw * qz)
-        q02 = 2 * (qx * qz + qw * qy)
-        q10 = 2 * (qx * qy + qw * qz)
-        q11 = 1 - 2 * (qx * qx + qz * qz)
-        q12 = 2 * (qy * qz - qw * qx)
-        q20 = 2 * (qx * qz - qw * qy)
-        q21 = 2 * (qy * qz + qw * qx)
-        q22 = 1 - 2 * (qx * qx + qy * qy)
+        qw, qx, qy, qz, _ = _unit_quat(qw, qx, qy, qz)
+        q00, q01, q02, q10, q11, q12, q20, q21, q22 = _rotation(qw, qx, qy, qz)
         # L = Rv R(q) diag(s)
         L00 = (v00 * q00 + v01 * q10 + v02 * q20) * s0
         L01 = (v00 * q01 + v01 * q11 + v02 * q21) * s1
@@ -155,16 +164,7 @@ if triton is not None:
         L21 = (v20 * q01 + v21 * q11 + v22 * q21) * s1
         L22 = (v20 * q02 + v21 * q12 + v22 * q22) * s2
         if EQUIRECT:
-            # Duff et al.'s basis of the tangent plane at n
-            sign = tl.where(nz >= 0, 1.0, -1.0)
-            a = -1.0 / (sign + nz)
-            b = nx * ny * a
-            e10 = 1.0 + sign * nx * nx * a
-            e11 = sign * b
-            e12 = -sign * nx
-            e20 = b
-            e21 = sign + ny * ny * a
-            e22 = -ny
+            _, _, e10, e11, e12, e20, e21, e22 = _tangent_basis(nx, ny, nz)
             k1 = sx / dist
             k2 = sy / dist
             T00 = e10 * k1

@@ -29,7 +29,7 @@ from .project_triton import BLOCK, _camera_vector, triton
 if triton is not None:
     import triton.language as tl
 
-    from .project_triton import _sh_channel
+    from .project_triton import _rotation, _sh_channel, _tangent_basis, _unit_quat
 
     _PACKB = tl.constexpr(PACK)
     _C1 = tl.constexpr(0.4886025119029199)
@@ -161,20 +161,8 @@ if triton is not None:
         ny = ty / dist
         nz = tz / dist
         n2q = rw * rw + rx * rx + ry * ry + rz * rz
-        qinv = 1.0 / tl.sqrt(tl.maximum(n2q, 1e-24))
-        qw = rw * qinv
-        qx = rx * qinv
-        qy = ry * qinv
-        qz = rz * qinv
-        q00 = 1 - 2 * (qy * qy + qz * qz)
-        q01 = 2 * (qx * qy - qw * qz)
-        q02 = 2 * (qx * qz + qw * qy)
-        q10 = 2 * (qx * qy + qw * qz)
-        q11 = 1 - 2 * (qx * qx + qz * qz)
-        q12 = 2 * (qy * qz - qw * qx)
-        q20 = 2 * (qx * qz - qw * qy)
-        q21 = 2 * (qy * qz + qw * qx)
-        q22 = 1 - 2 * (qx * qx + qy * qy)
+        qw, qx, qy, qz, qinv = _unit_quat(rw, rx, ry, rz)
+        q00, q01, q02, q10, q11, q12, q20, q21, q22 = _rotation(qw, qx, qy, qz)
         # M = R(q) S and L = Rv M
         M00 = q00 * s0
         M01 = q01 * s1
@@ -195,15 +183,7 @@ if triton is not None:
         L21 = v20 * M01 + v21 * M11 + v22 * M21
         L22 = v20 * M02 + v21 * M12 + v22 * M22
         if EQUIRECT:
-            sign = tl.where(nz >= 0, 1.0, -1.0)
-            a = -1.0 / (sign + nz)
-            b = nx * ny * a
-            e10 = 1.0 + sign * nx * nx * a
-            e11 = sign * b
-            e12 = -sign * nx
-            e20 = b
-            e21 = sign + ny * ny * a
-            e22 = -ny
+            sign, a, e10, e11, e12, e20, e21, e22 = _tangent_basis(nx, ny, nz)
             k1 = sx / dist
             k2 = sy / dist
             T00 = e10 * k1
