@@ -68,10 +68,23 @@ def topological_order(registry: dict[str, StageSpec]) -> list[str]:
         unknown = deps - graph.keys()
         if unknown:
             raise ValueError(f"stage {name!r} depends on unknown stage(s) {sorted(unknown)}")
+    declared = {name: i for i, name in enumerate(registry)}
+    sorter = graphlib.TopologicalSorter(graph)
     try:
-        return list(graphlib.TopologicalSorter(graph).static_order())
+        sorter.prepare()
     except graphlib.CycleError as e:
         raise ValueError(f"stage graph has a cycle: {' -> '.join(e.args[1])}") from None
+    # one stage at a time, the first declared of those ready: the registry's own order wherever the
+    # dependencies allow it (stable and readable: poses, layout, depth, ...)
+    order: list[str] = []
+    ready: set[str] = set()
+    while sorter.is_active():
+        ready.update(sorter.get_ready())
+        first = min(ready, key=declared.__getitem__)
+        ready.discard(first)
+        order.append(first)
+        sorter.done(first)
+    return order
 
 
 def ancestors(registry: dict[str, StageSpec], name: str) -> set[str]:

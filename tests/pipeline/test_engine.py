@@ -75,6 +75,9 @@ def test_topological_order_and_ancestors():
     assert order.index("a") < order.index("b") < order.index("c")
     assert order.index("x") < order.index("d")
     assert ancestors(reg, "c") == {"a", "b"}
+    # where the dependencies allow it, the order is the registry's (z declared first, then y after it)
+    assert topological_order({"z": make_stage("z", {}), "y": make_stage("y", {"z": True}),
+                              "w": make_stage("w", {})}) == ["z", "y", "w"]
 
 
 def test_cycle_is_reported():
