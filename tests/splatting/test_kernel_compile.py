@@ -27,6 +27,8 @@ def test_every_kernel_compiles_for_both_archs(rows):
     seen = {(r.kernel, r.arch, r.dtype) for r in rows}
     expected = {(k, a, d) for k in REG_BUDGET for a in (80, 90) for d in ("float32", "float64")}
     expected -= {("emit pairs", a, "float64") for a in (80, 90)}  # integer only: compiled once
+    # the projection's gradient: the float32 kernel training runs (its float64 twin runs in the tests)
+    expected -= {(k, a, "float64") for k in ("project backward (RGB)", "project backward (SH 3)") for a in (80, 90)}
     assert seen == expected
 
 
