@@ -435,11 +435,13 @@ class Engine:
                 inputs[dep] = None
             else:
                 inputs[dep] = load_artifact(self.out_dir / dep, self.registry[dep].output)
-        console.print(f"[bold cyan]▶ {p.name}[/] {escape(spec.description)}")
+        # the start is logged before the banner and the banner printed inside the try: an interrupt
+        # that comes as soon as the banner shows is logged as this stage's (it raced the log before)
         self._log(p.name, "start", host=socket.gethostname(), pid=os.getpid())  # which worker, in a batch
         t0 = time.perf_counter()
         scratch = run_path(self.out_dir, f".scratch/{p.name}")
         try:
+            console.print(f"[bold cyan]▶ {p.name}[/] {escape(spec.description)}")
             with atomic_folder(run_path(self.out_dir, p.name)) as tmp:
                 ctx = StageContext(
                     scene=scene,
