@@ -80,6 +80,13 @@ if triton is not None:
         return tl.abs(x) < float("inf")
 
     @triton.jit
+    def _view_rotation(viewmat):
+        """The rotation block of a row-major 4x4 world-to-camera matrix, row by row."""
+        return (tl.load(viewmat + 0), tl.load(viewmat + 1), tl.load(viewmat + 2),
+                tl.load(viewmat + 4), tl.load(viewmat + 5), tl.load(viewmat + 6),
+                tl.load(viewmat + 8), tl.load(viewmat + 9), tl.load(viewmat + 10))
+
+    @triton.jit
     def _unit_quat(qw, qx, qy, qz):
         """q / |q| and 1/|q| (|q|² floored at 1e-24: the zero quaternion gives the identity)."""
         inv = 1.0 / tl.sqrt(tl.maximum(qw * qw + qx * qx + qy * qy + qz * qz, 1e-24))
@@ -118,15 +125,7 @@ if triton is not None:
         mx = tl.load(means + i * 3, mask=ok_i, other=0)
         my = tl.load(means + i * 3 + 1, mask=ok_i, other=0)
         mz = tl.load(means + i * 3 + 2, mask=ok_i, other=0)
-        v00 = tl.load(viewmat + 0)
-        v01 = tl.load(viewmat + 1)
-        v02 = tl.load(viewmat + 2)
-        v10 = tl.load(viewmat + 4)
-        v11 = tl.load(viewmat + 5)
-        v12 = tl.load(viewmat + 6)
-        v20 = tl.load(viewmat + 8)
-        v21 = tl.load(viewmat + 9)
-        v22 = tl.load(viewmat + 10)
+        v00, v01, v02, v10, v11, v12, v20, v21, v22 = _view_rotation(viewmat)
         tx = mx * v00 + my * v01 + mz * v02 + tl.load(viewmat + 3)
         ty = mx * v10 + my * v11 + mz * v12 + tl.load(viewmat + 7)
         tz = mx * v20 + my * v21 + mz * v22 + tl.load(viewmat + 11)

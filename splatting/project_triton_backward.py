@@ -29,7 +29,7 @@ from .project_triton import BLOCK, _camera_vector, triton
 if triton is not None:
     import triton.language as tl
 
-    from .project_triton import _rotation, _sh_channel, _tangent_basis, _unit_quat
+    from .project_triton import _rotation, _sh_channel, _tangent_basis, _unit_quat, _view_rotation
 
     _PACKB = tl.constexpr(PACK)
     _C1 = tl.constexpr(0.4886025119029199)
@@ -130,15 +130,7 @@ if triton is not None:
         mx = tl.load(means + i * 3, mask=ok_i, other=0)
         my = tl.load(means + i * 3 + 1, mask=ok_i, other=0)
         mz = tl.load(means + i * 3 + 2, mask=ok_i, other=0)
-        v00 = tl.load(viewmat + 0)
-        v01 = tl.load(viewmat + 1)
-        v02 = tl.load(viewmat + 2)
-        v10 = tl.load(viewmat + 4)
-        v11 = tl.load(viewmat + 5)
-        v12 = tl.load(viewmat + 6)
-        v20 = tl.load(viewmat + 8)
-        v21 = tl.load(viewmat + 9)
-        v22 = tl.load(viewmat + 10)
+        v00, v01, v02, v10, v11, v12, v20, v21, v22 = _view_rotation(viewmat)
         # stand-ins on the rows not kept (finite everywhere; their gradients are stored as zero)
         mx = tl.where(valid, mx, 0.0)
         my = tl.where(valid, my, 0.0)
