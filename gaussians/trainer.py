@@ -38,7 +38,7 @@ from gaussians.model import DEFAULT_EPS2D, PARAM_NAMES, Gaussians, render
 from gaussians.objective import TrainingObjective
 from gaussians.optim import Adam, expon_lr
 from gaussians.strategy import DensifyStrategy
-from gaussians.view_jitter import TurnGrid, random_turn, turn_panorama
+from gaussians.view_jitter import TurnMaps, random_turn, turn_panorama
 
 __all__ = ["TrainConfig", "TrainView", "Trainer", "scene_extent", "CHECKPOINT_NAME"]
 
@@ -243,7 +243,7 @@ class Trainer:
         #: timed on the CPU (free there), None = not timed (a CUDA step would wait for the
         #: device at every part; set it to {} to time one anyway).
         self.part_seconds: dict[str, float] | None = {} if self.device.type == "cpu" else None
-        self._turn_grids: dict[tuple[int, int], TurnGrid] = {}
+        self._turn_maps: dict[tuple[int, int], TurnMaps] = {}
 
     def new_appearance(self) -> Appearance | None:
         if not self.cfg.appearance:
@@ -271,18 +271,18 @@ class Trainer:
         """`view` with its camera frame turned by a random rotation R, the ground truth and mask
         resampled so that each pixel still shows what the panorama saw along that ray."""
         key = (int(view.camera.height), int(view.camera.width))
-        grids = self._turn_grids.get(key)
-        if grids is None:
-            grids = self._turn_grids[key] = TurnGrid(*key, device=self.device)
+        turn_maps = self._turn_maps.get(key)
+        if turn_maps is None:
+            turn_maps = self._turn_maps[key] = TurnMaps(*key, device=self.device)
         rot = random_turn(self.cfg.random_turn_tilt_deg, self.gen)
-        grid = grids.grid(rot, view.image.dtype)
+        maps = turn_maps.maps(rot)
         with torch.no_grad():
-            image = turn_panorama(view.image, grid, self.cfg.random_turn_interp)
+            image = turn_panorama(view.image, maps, self.cfg.random_turn_interp)
             if self.cfg.random_turn_interp != "bilinear":
-                image = image.clamp(0.0, 1.0)
+                image = image.clamp_(0.0, 1.0)
             mask = None
             if view.mask is not None:
-                mask = turn_panorama(view.mask[..., None].to(view.image.dtype), grid)[..., 0] > 0.999
+                mask = turn_panorama(view.mask[..., None].to(view.image.dtype), maps)[..., 0] > 0.999
         viewmat = view.viewmat.clone()
         viewmat[:3] = rot.to(viewmat) @ view.viewmat[:3]
         return TrainView(view.name, image, viewmat, view.camera, mask)

@@ -11,13 +11,13 @@ import torch
 import splatting
 from gaussians.model import Gaussians, render
 from gaussians.trainer import TrainConfig, Trainer, TrainView
-from gaussians.view_jitter import TurnGrid, random_turn, turn_panorama
+from gaussians.view_jitter import TurnMaps, random_turn, turn_panorama
 from panogeom.rotate import rotate_equirect, yaw_matrix
 
 
 def test_whole_pixel_yaw_is_an_exact_column_roll():
     img = torch.rand(16, 32, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
-    grid = TurnGrid(16, 32, "cpu").grid(torch.from_numpy(yaw_matrix(2 * math.pi * 5 / 32)), torch.float64)
+    grid = TurnMaps(16, 32, "cpu").maps(torch.from_numpy(yaw_matrix(2 * math.pi * 5 / 32)))
     assert torch.allclose(turn_panorama(img, grid), torch.roll(img, 5, dims=1), atol=1e-5)  # float32 grid
 
 
@@ -31,12 +31,24 @@ def test_turn_agrees_with_rotate_equirect_and_inverts():
                        0.5 + 0.2 * np.cos(2 * lon) * np.cos(lat)], -1)
     img = torch.from_numpy(smooth)
     rot = random_turn(30.0, torch.Generator().manual_seed(3))
-    grids = TurnGrid(h, w, "cpu")
-    turned = turn_panorama(img, grids.grid(rot, torch.float64))
+    grids = TurnMaps(h, w, "cpu")
+    turned = turn_panorama(img, grids.maps(rot))
     assert np.abs(turned.numpy() - rotate_equirect(smooth, rot.numpy())).max() < 0.01
-    back = turn_panorama(turned, grids.grid(rot.T, torch.float64))
+    back = turn_panorama(turned, grids.maps(rot.T))
     assert (back - img)[4:-4].abs().max() < 0.02  # two bilinear resamplings; the pole rows are clamped
     assert not torch.allclose(turned, img, atol=0.05)
+
+
+def test_cpu_bicubic_resampler_matches_grid_sample():
+    """Bicubic float32 on the CPU goes through cv2.remap, float64 through grid_sample: the same image,
+    across the seam and at the clamped pole rows, contiguous for the losses."""
+    img = torch.rand(24, 48, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+    maps = TurnMaps(24, 48, "cpu").maps(random_turn(30.0, torch.Generator().manual_seed(5)))
+    fast, ref = turn_panorama(img.float(), maps, "bicubic"), turn_panorama(img, maps, "bicubic")
+    assert fast.dtype == torch.float32 and fast.is_contiguous() and ref.is_contiguous()
+    assert (fast.double() - ref).abs().max() < 1e-5
+    # one channel, as the mask is turned
+    assert (turn_panorama(img[..., :1].float(), maps, "bicubic").double() - ref[..., :1]).abs().max() < 1e-5
 
 
 def test_random_turn_is_a_rotation_within_its_tilt():
@@ -89,11 +101,11 @@ def test_turned_view_matches_the_render_of_the_turned_camera():
 
 def test_bicubic_turn_rolls_exactly_and_stays_in_range():
     img = torch.rand(16, 32, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
-    grids = TurnGrid(16, 32, "cpu")
-    roll = grids.grid(torch.from_numpy(yaw_matrix(2 * math.pi * 3 / 32)), torch.float64)
+    grids = TurnMaps(16, 32, "cpu")
+    roll = grids.maps(torch.from_numpy(yaw_matrix(2 * math.pi * 3 / 32)))
     assert torch.allclose(turn_panorama(img, roll, "bicubic"), torch.roll(img, 3, dims=1), atol=1e-5)
     # a half-pixel yaw: bilinear averages two neighbours (a blur), bicubic less so
-    half = grids.grid(torch.from_numpy(yaw_matrix(2 * math.pi * 0.5 / 32)), torch.float64)
+    half = grids.maps(torch.from_numpy(yaw_matrix(2 * math.pi * 0.5 / 32)))
     lin, cub = turn_panorama(img, half), turn_panorama(img, half, "bicubic")
     assert torch.allclose(lin, 0.5 * (img + torch.roll(img, 1, dims=1)), atol=1e-5)
     assert cub.std() > lin.std()
