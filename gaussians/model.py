@@ -15,11 +15,11 @@ from dataclasses import dataclass
 
 import torch
 
+from splatting.render import DEFAULT_EPS2D
+
 __all__ = ["Gaussians", "PARAM_NAMES", "BUFFER_NAMES", "SH_C0", "rgb_to_sh", "sh_to_rgb", "render", "render_stitched"]
 
 SH_C0 = 0.28209479177387814
-#: 3DGS's screen-space dilation, in squared pixels (splatting.render's default)
-DEFAULT_EPS2D = 0.3
 
 #: The optimised tensors, in the order the optimiser and checkpoints use.
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")

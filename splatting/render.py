@@ -18,6 +18,8 @@ from .sh import eval_sh, num_sh_bases
 __all__ = ["render", "RenderOutput"]
 
 DEFAULT_TILE = 16
+#: 3DGS's screen-space dilation of every footprint, in squared pixels
+DEFAULT_EPS2D = 0.3
 
 
 @dataclass
@@ -95,7 +97,7 @@ def render(
     camera: Union[EquirectCamera, PinholeCamera],
     sh_degree: Optional[int] = None,
     background: Optional[torch.Tensor] = None,
-    eps2d: float = 0.3,
+    eps2d: float = DEFAULT_EPS2D,
     near: float = 0.05,
     backend: Optional[str] = None,
     tile_size: int = DEFAULT_TILE,

@@ -17,7 +17,7 @@ from typing import Optional
 import torch
 
 from .cameras import EquirectCamera, PerspectiveRig, cubemap_rig
-from .render import DEFAULT_TILE, RenderOutput, render
+from .render import DEFAULT_EPS2D, DEFAULT_TILE, RenderOutput, render
 
 __all__ = ["stitch", "stitch_table", "render_stitched", "render_cubemap"]
 
@@ -83,7 +83,7 @@ def stitch(crops: torch.Tensor, height: int, width: int, rig: PerspectiveRig) ->
 
 def render_stitched(
     means, quats, scales, opacities, colors, viewmat, height: int, width: int, rig: PerspectiveRig,
-    sh_degree=None, background=None, eps2d: float = 0.3, near: float = 0.05, backend=None,
+    sh_degree=None, background=None, eps2d: float = DEFAULT_EPS2D, near: float = 0.05, backend=None,
     tile_size: int = DEFAULT_TILE,
 ):
     """Render every crop of ``rig`` with :func:`splatting.render` and stitch them into a
@@ -111,7 +111,7 @@ def render_stitched(
 
 def render_cubemap(
     means, quats, scales, opacities, colors, viewmat, height: int, width: int,
-    sh_degree=None, background=None, eps2d: float = 0.3, near: float = 0.05, backend=None,
+    sh_degree=None, background=None, eps2d: float = DEFAULT_EPS2D, near: float = 0.05, backend=None,
     face_size: Optional[int] = None, tile_size: int = DEFAULT_TILE,
 ):
     """The cubemap baseline: six 90° pinhole faces (``face_size``, default W/4) stitched into an

@@ -73,6 +73,37 @@ def test_projection_defaults():
         False, 5, 0.1, "bilinear")
 
 
+def test_every_shared_setting_reaches_the_trainer():
+    """make_config passes each setting the stage shares with TrainConfig through (the learning rates
+    times lr_scale), and a setting left at its default is the trainer's own default."""
+    import dataclasses
+
+    from gaussians.trainer import TrainConfig
+    from stages.train import _SCALED_LRS, Params, make_config
+
+    trainer_default = TrainConfig()
+    derived = {"iterations", "densify_from", "densify_until", "opacity_reset_every", "max_gaussians", "eps2d",
+               "random_turns", "mip_filter", "random_background", "lambda_layout", "coverage_height", "extent",
+               "device"}  # resolved from the preset / projection, or derived by the stage
+    shared = [f.name for f in dataclasses.fields(TrainConfig) if f.name in Params.model_fields]
+    assert len(shared) > 40
+    for name in shared:
+        if name in derived or Params.model_fields[name].default is None:
+            continue
+        assert Params.model_fields[name].default == getattr(trainer_default, name), name
+        value = getattr(trainer_default, name)
+        changed = (not value) if isinstance(value, bool) else (
+            value if isinstance(value, str) else (tuple(0.5 for _ in value) if isinstance(value, tuple)
+                                                  else value * 3 + 1 if isinstance(value, int) else value * 0.5 + 1e-4))
+        if name == "random_turn_interp":
+            changed = "bilinear"
+        if name == "sh_degree":
+            changed = 1
+        cfg = make_config(Params(**{name: changed, "lr_scale": 0.25}), 4, 2.0)
+        expected = 0.25 * changed if name in _SCALED_LRS else changed
+        assert getattr(cfg, name) == pytest.approx(expected), name
+
+
 def test_crop_resampler_matches_the_baselines_crops_and_passes_gradients():
     """The differentiable resampling gives the crops the baseline trains on (stages.train.crop_image,
     cv2.remap), and the crop loss of a panorama against its own crops is 0 (SSIM 1)."""
