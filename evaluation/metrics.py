@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
+import io
 import math
 import os
 import sys
@@ -360,21 +361,35 @@ def find_lpips_weights(net: str = "alex", explicit: str | Path | None = None, do
     return LpipsFiles(backbone, heads)
 
 
+#: Downloads of a backbone that failed in this process: (url, destination) -> the reason. A batch or
+#: an ablation evaluates many times; offline, each would try again and say so again.
+_FAILED_DOWNLOADS: dict[tuple[str, str], str] = {}
+
+
 def _download_backbone(net: str, dest: Path, allowed: bool) -> None:
     url = TORCHVISION_URL + _BACKBONE_FILES[net]
     if not allowed or os.environ.get(OFFLINE_ENV):
         why = "downloads are off" + (f" (${OFFLINE_ENV} is set)" if os.environ.get(OFFLINE_ENV) else "")
         raise LpipsUnavailable(f"{dest} is missing and {why}: download {url} and put it there")
+    key = (url, str(dest))
+    if key in _FAILED_DOWNLOADS:  # tried once in this process already: not again
+        raise LpipsUnavailable(_FAILED_DOWNLOADS[key])
     try:
         # Checks the published SHA-256 prefix in the file name; writes nothing on failure. torch hub
-        # announces the download on stderr, which pano-pipe keeps for the one error line.
-        with contextlib.redirect_stderr(sys.stdout):
+        # announces the download (on stdout or stderr, by version): dropped, as a failure is said once,
+        # in the reason, and stderr is kept for the one error line.
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
             torch.hub.load_state_dict_from_url(url, map_location="cpu", weights_only=True, progress=False,
                                                check_hash=True)
     except Exception as e:  # offline, proxy, disk full, bad hash: the user needs the same three facts
-        raise LpipsUnavailable(
-            f"{dest} is missing and downloading {url} failed ({type(e).__name__}: {e}); "
-            f"download it by hand and put it there") from None
+        from urllib.parse import urlsplit
+
+        from models.network import describe_failure
+
+        reason = (f"{dest} is missing and downloading {url} failed "
+                  f"({describe_failure(e, urlsplit(url).hostname or url)}); download it by hand and put it there")
+        _FAILED_DOWNLOADS[key] = reason
+        raise LpipsUnavailable(reason) from None
     if not dest.is_file():  # a hub dir changed under us
         raise LpipsUnavailable(f"downloaded {url} but {dest} is not there")
 

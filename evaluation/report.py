@@ -1,7 +1,9 @@
 """`pano-pipe report`: one self-contained HTML page (every image base64-embedded) and a
 Markdown twin with its PNGs beside it, built from a run folder's artifacts.
 
-Sections: files (relative links to the model, fly-through videos, config.yaml, logs);
+Sections: what limits the run (no priors, overfitting: evaluation/diagnosis.py) and every stage's
+warnings beside the stage, when there are any; files (relative links to the model, fly-through
+videos, config.yaml, logs);
 test metrics (one row per view, the mean, best/worst view, LPIPS availability, render
 speed); per evaluated view ground truth / render / error / depth and, with ground-truth
 depth, that depth and the depth error — every false-colour map with a colour bar (units,
@@ -27,8 +29,9 @@ import numpy as np
 
 from evaluation.report_text import fmt, html_text, md_text, missing_fields, url
 from evaluation.visuals import pyplot
-from evaluation.report_sections import (STAGE_SECTIONS, SectionContext, export_links, read_artifact,
-                                        settings_section, settings_without_effect)
+from evaluation.report_sections import (STAGE_SECTIONS, SectionContext, diagnosis_section, export_links,
+                                        read_artifact, settings_section, settings_without_effect,
+                                        warnings_section)
 from runfs.errors import PanoError
 from runfs.limits import load_npy
 from runfs.paths import run_path
@@ -685,6 +688,13 @@ def _write_report(run_dir: Path, scene, out_dir: Path, states: dict[str, str] | 
     doc.p(f"run folder {run_dir} · generated {datetime.now(timezone.utc):%Y-%m-%d %H:%M UTC}", "note")
     camera_labels: list[str] = []
 
+    # -- what limits this run (no priors, overfitting), then every stage's warnings: first, where they are seen
+    section_ctx = SectionContext(run_dir=run_dir, scene=scene, out_dir=out_dir, img_dir=img_dir)
+    for section in (diagnosis_section, warnings_section):
+        section_id = section(doc, section_ctx)
+        if section_id:
+            sections.append(section_id)
+
     # -- files: model, videos, configuration, logs (relative links: the report moves with the run)
     out_dir.mkdir(parents=True, exist_ok=True)
     params = stage_params(run_dir)
@@ -721,7 +731,9 @@ def _write_report(run_dir: Path, scene, out_dir: Path, states: dict[str, str] | 
             doc.p(f"Missing from the evaluation (null or NaN in evaluate/artifact.json): {', '.join(missing)}; "
                   "a model with NaN parameters renders nothing to measure: train it again.", "warn")
         if not d.get("lpips_available"):
-            doc.p(f"LPIPS unavailable: {d.get('lpips_reason')}", "warn")
+            said = any(d.get("lpips_reason") and d["lpips_reason"] in w for w in ev["meta"].get("warnings") or [])
+            doc.p("LPIPS unavailable: see the evaluate stage's warning (Stage warnings)." if said else
+                  f"LPIPS unavailable: {d.get('lpips_reason')}", "warn")
         h, w = (list(d.get("resolution") or []) + ["?", "?"])[:2]
         doc.p(
             f"Render speed {fmt(d.get('fps'), '.2f')} FPS (median of {fmt(d.get('fps_repeats'))}) for a {h}×{w} (H×W) "
@@ -831,7 +843,6 @@ def _write_report(run_dir: Path, scene, out_dir: Path, states: dict[str, str] | 
         sections.append("poses")
 
     # -- what each stage did (layout, depth alignment, ...): present only when the stage ran
-    section_ctx = SectionContext(run_dir=run_dir, scene=scene, out_dir=out_dir, img_dir=img_dir)
     for section in STAGE_SECTIONS:
         section_id = section(doc, section_ctx)
         if section_id:

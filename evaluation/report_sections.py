@@ -22,7 +22,8 @@ import numpy as np
 
 from evaluation.report_text import fmt
 
-__all__ = ["SectionContext", "STAGE_SECTIONS", "layout_section", "depth_alignment_section",
+__all__ = ["SectionContext", "STAGE_SECTIONS", "layout_section", "depth_alignment_section", "diagnosis_section",
+           "warnings_section", "stage_warnings",
            "settings_without_effect", "settings_section", "export_links", "stage_file", "read_artifact",
            "flatten_params"]
 
@@ -54,6 +55,54 @@ def stage_file(run_dir: Path, stage: str, name) -> Path | None:
         return None
     path = Path(run_dir) / stage / name
     return path if path.is_file() else None
+
+
+# ----------------------------------------------------------------------------- diagnosis and warnings
+
+
+def stage_warnings(run_dir: Path) -> list[tuple[str, str]]:
+    """(stage, warning) for every warning a stage of this run recorded (its artifact's meta.warnings:
+    what ctx.warn said while it ran), stages in DAG order, each stage's in the order said."""
+    from pipeline.engine import topological_order
+    from pipeline.registry import build_registry
+
+    out = []
+    for stage in topological_order(build_registry()):
+        art = read_artifact(run_dir, stage)
+        for w in ((art or {}).get("meta") or {}).get("warnings") or []:
+            out.append((stage, str(w)))
+    return out
+
+
+def diagnosis_section(doc, ctx: SectionContext) -> str | None:
+    """What limits this run, before anything else: trained without priors (what it costs, the
+    commands that fetch the models), a model that overfits its training views (the likely causes
+    in order); evaluation/diagnosis.py words both. Absent when neither applies."""
+    from evaluation.diagnosis import run_notes
+
+    tr = read_artifact(ctx.run_dir, "train")
+    if tr is None:
+        return None
+    ev = read_artifact(ctx.run_dir, "evaluate")
+    notes = run_notes(tr["data"], (tr.get("meta") or {}).get("upstream"), ev["data"] if ev else None, ctx.scene)
+    if not notes:
+        return None
+    doc.h(2, "What limits this run", "diagnosis")
+    for note in notes:
+        doc.p(note[0].upper() + note[1:] + ("" if note.endswith(".") else "."), "warn")
+    return "diagnosis"
+
+
+def warnings_section(doc, ctx: SectionContext) -> str | None:
+    """Every warning a stage recorded, beside the stage that said it (fell back to a cuboid, assumed a
+    camera height, heights disagree, points seen by no view, LPIPS unavailable, ...); absent when
+    no stage warned."""
+    rows = stage_warnings(ctx.run_dir)
+    if not rows:
+        return None
+    doc.h(2, "Stage warnings", "warnings")
+    doc.table(["stage", "warning"], [[stage, w] for stage, w in rows])
+    return "warnings"
 
 
 # ----------------------------------------------------------------------------- layout
@@ -205,8 +254,8 @@ def depth_alignment_section(doc, ctx: SectionContext) -> str | None:
         doc.p("scale = layout-fit scale × ICP factor. Inliers: labelled pixels whose depth agrees with the "
               "layout within align.inlier_threshold; ICP fitness: share of depth points within "
               "align.icp_max_distance of the layout cloud.", "note")
-    for w in (art.get("meta") or {}).get("warnings", []) or []:
-        doc.p(str(w), "warn")
+    if (art.get("meta") or {}).get("warnings"):
+        doc.p("The align stage warned: see Stage warnings.", "warn")
     return "alignment"
 
 

@@ -7,12 +7,16 @@ for Hugging Face, pooch for plain URLs (which checks the hash while it downloads
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
 import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from urllib.parse import urlsplit
 
+from models.network import check_reachable, describe_failure, first_sentences
 from models.registry import KnownModel, get_model
 from models.store import (
     checkpoint_path,
@@ -40,36 +44,80 @@ class Fetched:
     exported: bool
 
 
-def _first_line(e: BaseException) -> str:
-    text = " ".join(str(e).split())
-    return f"{type(e).__name__}: {text[:200]}" if text else type(e).__name__
+#: Loggers of the download clients and the HTTP libraries under them: their retry chatter
+#: ("'[Errno -2] Name or service not known' thrown while requesting HEAD ...", "Retrying in 1s
+#: [Retry 1/5].") is not for the user of `models fetch`, who gets one line saying what failed.
+_CLIENT_LOGGERS = ("huggingface_hub", "gdown", "pooch", "urllib3", "requests", "httpx", "httpx2", "httpcore",
+                   "httpcore2", "filelock")
+
+
+@contextlib.contextmanager
+def _quiet_clients():
+    """The download clients' log records below ERROR dropped while a download runs (restored after)."""
+    saved = {}
+    for name in _CLIENT_LOGGERS:
+        logger = logging.getLogger(name)
+        saved[name] = logger.level
+        logger.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        for name, level in saved.items():
+            logging.getLogger(name).setLevel(level)
+
+
+def _hf_endpoint() -> str:
+    """The Hugging Face endpoint hf_hub_download talks to ($HF_ENDPOINT, else huggingface.co)."""
+    from huggingface_hub import constants
+
+    return constants.ENDPOINT
+
+
+def download_address(entry: KnownModel) -> tuple[str, int]:
+    """(host, port) the download of `entry` connects to first."""
+    if entry.host == "gdrive":
+        return "drive.google.com", 443
+    url = _hf_endpoint() if entry.host == "huggingface" else entry.source
+    parts = urlsplit(url)
+    return parts.hostname or "", parts.port or (443 if parts.scheme == "https" else 80)
+
+
+def _cannot_download(entry: KnownModel, why: str) -> str:
+    return (f"cannot download {entry.filename}: {why}; download it by hand from that address and put it at "
+            f"{checkpoint_path(entry)}")
 
 
 def _download(entry: KnownModel, folder: Path, want: str | None) -> Path:
     """Download into `folder` with the host's client; returns the file."""
+    # offline: one line at once, not after the client's retries (about 25 s of them for Hugging Face)
+    if (why := check_reachable(*download_address(entry))) is not None:
+        raise PanoError(entry.url, _cannot_download(entry, why))
     quiet = not sys.stderr.isatty()
+    # each client imported before its loggers are quietened: importing huggingface_hub sets its level
     if entry.host == "gdrive":
         import gdown
 
         out = folder / entry.filename
-        got = gdown.download(id=entry.source, output=str(out), quiet=quiet)
+        with _quiet_clients():
+            got = gdown.download(id=entry.source, output=str(out), quiet=quiet)
         if not got or not out.is_file():
             raise OSError("Google Drive returned no file")
         return out
     if entry.host == "huggingface":
         from huggingface_hub import hf_hub_download
 
-        return Path(hf_hub_download(entry.source, entry.filename, local_dir=folder))
+        with _quiet_clients():
+            return Path(hf_hub_download(entry.source, entry.filename, local_dir=folder, endpoint=_hf_endpoint()))
     import pooch
 
-    pooch.get_logger().setLevel("WARNING")  # its advice to pin the hash is ours to give
     try:
-        return Path(pooch.retrieve(entry.source, known_hash=f"sha256:{want}" if want else None,
-                                   fname=entry.filename, path=folder, progressbar=not quiet))
+        with _quiet_clients():  # pooch's advice to pin the hash is ours to give
+            return Path(pooch.retrieve(entry.source, known_hash=f"sha256:{want}" if want else None,
+                                       fname=entry.filename, path=folder, progressbar=not quiet))
     except ValueError as e:  # pooch's hash check; it has removed the file
         if "hash" in str(e).lower():
             raise PanoError(entry.url, f"the download's SHA-256 does not match {want}; nothing was kept "
-                                       f"(pooch: {' '.join(str(e).split())[:160]})") from None
+                                       f"(pooch: {first_sentences(e).removeprefix('ValueError: ')})") from None
         raise
 
 
@@ -100,8 +148,8 @@ def fetch(name: str, force: bool = False, log=print) -> Fetched:
             except PanoError:
                 raise
             except Exception as e:  # the clients raise their own types for no network, 404, quota
-                raise PanoError(entry.url, f"cannot download {entry.filename} ({_first_line(e)}): download it "
-                                           f"by hand and put it at {ckpt}") from None
+                why = describe_failure(e, *download_address(entry))
+                raise PanoError(entry.url, _cannot_download(entry, why)) from None
             digest = sha256_file(got)
             if want is not None and digest != want:
                 raise PanoError(entry.url, f"the download's SHA-256 {digest} does not match {want}; "

@@ -164,6 +164,7 @@ def run(
     console.print(run_header(engine), soft_wrap=True)
     for line in engine.hints():
         console.print(escape(line), soft_wrap=True)
+    print_no_priors_warning(engine, engine.select(target, until))
     results = engine.run(target=target, until=until, force=force, resume=resume, force_upstream=force_upstream)
     table = Table(title="run")
     for col in ("stage", "outcome", "seconds", "note"):
@@ -197,6 +198,15 @@ def run_header(engine) -> str:
     return escape(f"scene {engine.scene.name}: {len(views)} views ({n_train} train, {len(views) - n_train} test); "
                   f"training at {height}x{2 * height}, preset {train.preset}, "
                   f"on {device}{backend}; output {engine.out_dir}")
+
+
+def print_no_priors_warning(engine, selected: list[str]) -> None:
+    """The banner's warning when the run trains without priors (layout and depth both skipped): what
+    that costs and the commands that fetch the models (evaluation/diagnosis.py)."""
+    from evaluation.diagnosis import no_priors_message, plans_without_priors
+
+    if plans_without_priors(engine.plan(), selected):
+        console.print(f"[yellow]warning:[/] {escape(no_priors_message())}", soft_wrap=True)
 
 
 def print_run_summary(engine, scene_arg: Path, finished: list[str], flags: str = "",
@@ -234,6 +244,13 @@ def print_run_summary(engine, scene_arg: Path, finished: list[str], flags: str =
         table.add_row("[bold]mean[/]", *(_metric(ev.mean.get(c)) for c in cols))
         console.print(table)
         console.print(escape(f"render speed: {ev.fps:.1f} FPS at {h}x{w}"), soft_wrap=True)
+    if train is not None:  # a run without priors, a model that overfits: said beside the numbers
+        from evaluation.diagnosis import run_notes
+        from pipeline.engine import read_artifact
+
+        upstream = read_artifact(out, "train").meta.upstream
+        for note in run_notes(train, upstream, ev, engine.completed_scene()):
+            console.print(f"[yellow]warning:[/] {escape(note)}", soft_wrap=True)
     if train is not None:
         scene_q, out_q = shlex.quote(str(scene_arg)), shlex.quote(str(out))
         console.print("next steps:")

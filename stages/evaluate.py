@@ -198,6 +198,22 @@ def train_background(train: Loaded) -> tuple[float, float, float] | None:
 # ----------------------------------------------------------------------------- stage
 
 
+#: LPIPS warnings already printed by this process: a batch or an ablation evaluates many times, and
+#: the same missing weights are said once (each artifact still records the warning).
+_LPIPS_SAID: set[str] = set()
+
+
+def lpips_unavailable(ctx: StageContext, reason: str) -> None:
+    """Warn that LPIPS is not computed, naming the setting that turns it off: printed once per process
+    for one reason, recorded in every artifact."""
+    message = f"LPIPS unavailable: {reason}; --set evaluate.lpips=false turns LPIPS off"
+    if reason in _LPIPS_SAID:
+        ctx.warnings.append(message)
+    else:
+        _LPIPS_SAID.add(reason)
+        ctx.warn(message)
+
+
 def run(ctx: StageContext) -> EvaluateOutput:
     p: Params = ctx.params
     train = ctx.inputs["train"]
@@ -224,7 +240,7 @@ def run(ctx: StageContext) -> EvaluateOutput:
                 lpips_model = M.load_lpips(p.lpips_net, p.lpips_weights, p.lpips_download)
             except M.LpipsUnavailable as e:
                 lpips_reason = str(e)
-                ctx.warn(f"LPIPS unavailable: {lpips_reason}")
+                lpips_unavailable(ctx, lpips_reason)
         else:
             lpips_reason = "disabled by parameter evaluate.lpips=false"
 

@@ -131,3 +131,38 @@ def test_heads_are_read_from_the_installed_wheel_without_importing_it():
 
 def test_params_default_downloads_and_can_be_turned_off():
     assert Params().lpips_download and not Params(lpips_download=False).lpips_download
+
+
+def test_an_offline_download_is_tried_and_said_once_per_run(standard_places, sim_scene, sim_model, tmp_path,
+                                                             monkeypatch, capsys):
+    """Issue 36: offline, every evaluation tried the download again and announced it. A run that
+    evaluates twice (a batch, an ablation) tries once and prints the warning once, naming the
+    setting that turns LPIPS off; each artifact still records it."""
+    import socket
+    import urllib.error
+
+    from stages import evaluate
+
+    hub, heads = standard_places
+    torch.save(fake_lpips_state()[1], heads / "alex.pth")
+    monkeypatch.delenv(M.OFFLINE_ENV, raising=False)
+    monkeypatch.setattr(M, "_FAILED_DOWNLOADS", {})
+    monkeypatch.setattr(evaluate, "_LPIPS_SAID", set())
+    tries = []
+
+    def offline(url, **kw):  # what torch hub raises offline: the socket's error inside a URLError
+        tries.append(url)
+        print(f'Downloading: "{url}" to {hub}')  # torch hub's announcement, on stdout
+        raise urllib.error.URLError(socket.gaierror(socket.EAI_NONAME, "Name or service not known"))
+
+    monkeypatch.setattr(torch.hub, "load_state_dict_from_url", offline)
+    write_train_artifact(tmp_path / "run", sim_model, resolution=(32, 64))
+    capsys.readouterr()
+    contexts = [_run(sim_scene, tmp_path / "run", fps_repeats=1, threads=1)[1] for _ in range(2)]
+    out = " ".join(capsys.readouterr().out.split())
+    assert len(tries) == 1 and "Downloading" not in out
+    assert out.count("LPIPS unavailable") == 1
+    assert "no network: the name download.pytorch.org does not resolve" in out
+    assert "--set evaluate.lpips=false turns LPIPS off" in out
+    for ctx in contexts:
+        assert [w for w in ctx.warnings if "LPIPS unavailable" in w and "evaluate.lpips=false" in w]

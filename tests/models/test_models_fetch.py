@@ -248,6 +248,7 @@ def test_google_drive_and_hugging_face_go_through_their_clients(registry, tmp_pa
 
     monkeypatch.setattr(gdown, "download", fake_gdown)
     monkeypatch.setattr(huggingface_hub, "hf_hub_download", fake_hf)
+    monkeypatch.setattr("models.download.check_reachable", lambda host, port: None)  # the hosts "answer"
     got = fetch("horizonnet-zind", log=lambda m: None)
     assert calls == [("gdrive", "1FrMdk7Z4_sTZOOW65Ek77WbjiDbV98uJ", "resnet50_rnn__zind.pth")]
     assert got.checkpoint == cache / "resnet50_rnn__zind.pth" and got.onnx.is_file() and got.sha256 == sha
@@ -288,3 +289,104 @@ def test_a_missing_exporter_is_said_before_any_download(registry):
     with pytest.raises(PanoError, match="exporter 'layoutnet.nowhere:export' is not one pano-pipe calls"):
         fetch("horizonnet-noexport", log=lambda m: None)
     assert server.requests == [] and not (cache / "noexport.pth").exists()
+
+
+def _add_entries(*entries) -> None:
+    reg = Path(os.environ["PANO_PIPE_MODELS_REGISTRY"])
+    reg.write_text(yaml.safe_dump(yaml.safe_load(reg.read_text()) + list(entries)))
+
+
+@pytest.mark.parametrize("name, host", [("horizonnet-zind", "drive.google.com"),
+                                        ("horizonnet-hf", "huggingface.co"),
+                                        ("horizonnet-web", "models.example.org")])
+def test_fetch_without_network_is_one_whole_line_at_once(registry, monkeypatch, capsys, name, host):
+    """Issue 36: offline, `models fetch` printed twelve lines (the client's retries) and a sentence cut
+    in the middle. The network is made to fail as offline (no name resolves): one line on stderr,
+    whole (it ends with where to put the file), said before any client is called."""
+    import time
+
+    import gdown
+    import huggingface_hub
+    import pooch
+
+    cache, sha, _ = registry
+    _add_entries({"name": "horizonnet-hf", "kind": "layout", "host": "huggingface", "source": "someone/horizonnet",
+                  "filename": "hf.pth", "sha256": sha},
+                 {"name": "horizonnet-web", "kind": "layout", "host": "url",
+                  "source": "https://models.example.org/web.pth", "filename": "web.pth", "sha256": sha})
+
+    def offline(*args, **kwargs):
+        raise socket.gaierror(socket.EAI_NONAME, "Name or service not known")
+
+    monkeypatch.setattr(socket, "getaddrinfo", offline)
+    for module, fn in ((gdown, "download"), (huggingface_hub, "hf_hub_download"), (pooch, "retrieve")):
+        monkeypatch.setattr(module, fn, lambda *a, **k: pytest.fail("a client was called offline"))
+    t0 = time.perf_counter()
+    code, out, err = invoke(["models", "fetch", name], capsys)
+    assert time.perf_counter() - t0 < 10  # no retries first
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    line = " ".join(err.split())
+    filename = {"horizonnet-zind": "resnet50_rnn__zind.pth", "horizonnet-hf": "hf.pth",
+                "horizonnet-web": "web.pth"}[name]
+    assert line.startswith("error: ") and f"cannot download {filename}: no network: the name {host} does not resolve" \
+        in line
+    assert line.endswith(f"put it at {cache / filename}")  # whole: the sentence ends where it should
+    assert "Retry" not in err and not list(cache.glob(".fetch-*"))
+
+
+def test_the_clients_retry_chatter_is_not_shown(registry, monkeypatch):
+    """Where the host is not checked first (behind a proxy), Hugging Face's client retries five times
+    and logs each retry: those records are dropped, the failure is one line in words."""
+    import logging
+
+    import huggingface_hub.utils._http as hf_http
+
+    from models.download import fetch
+
+    cache, sha, _ = registry
+    _add_entries({"name": "horizonnet-hf", "kind": "layout", "host": "huggingface", "source": "someone/horizonnet",
+                  "filename": "hf.pth", "sha256": sha})
+    monkeypatch.setattr("models.download.check_reachable", lambda host, port: None)
+    monkeypatch.setattr("models.download._hf_endpoint", lambda: f"http://127.0.0.1:{_free_port()}")
+    monkeypatch.setattr(hf_http.time, "sleep", lambda s: None)  # the retries, without their waits
+    for k in ("HTTP_PROXY", "HTTPS_PROXY", "ALL_PROXY", "http_proxy", "https_proxy", "all_proxy"):
+        monkeypatch.delenv(k, raising=False)
+    records: list[logging.LogRecord] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record):
+            records.append(record)
+
+    handler = Collect(level=logging.DEBUG)
+    logging.getLogger("huggingface_hub").addHandler(handler)
+    try:
+        with pytest.raises(PanoError) as e:
+            fetch("horizonnet-hf", log=lambda m: None)
+    finally:
+        logging.getLogger("huggingface_hub").removeHandler(handler)
+    assert [r.getMessage() for r in records if r.levelno < logging.ERROR] == []
+    msg = str(e.value)
+    assert "\n" not in msg and "cannot download hf.pth: 127.0.0.1:" in msg and "refused the connection" in msg
+    assert msg.endswith(f"put it at {cache / 'hf.pth'}")
+    assert logging.getLogger("huggingface_hub").level != logging.ERROR  # restored after the download
+
+
+def test_a_long_client_message_is_cut_at_a_sentence_end():
+    from models.network import describe_failure, first_sentences
+
+    hf = ("An error happened while trying to locate the file on the Hub and we cannot find the requested files "
+          "in the local cache. Please check your connection and try again or make sure your Internet "
+          "connection is on.")
+    short = first_sentences(OSError(hf), limit=150)
+    assert short == "OSError: " + hf.split(". ")[0] + "."
+    assert first_sentences(OSError(hf)) == "OSError: " + hf  # fits: whole
+    assert first_sentences(OSError("x" * 40 + " " + "y" * 400), limit=100).endswith("x" * 40 + " …")
+    # the socket's error inside the client's wrapper is what is said
+    try:
+        try:
+            raise socket.gaierror(socket.EAI_NONAME, "Name or service not known")
+        except OSError as inner:
+            raise FileNotFoundError(hf) from inner
+    except OSError as outer:
+        assert describe_failure(outer, "huggingface.co", 443) == \
+            "no network: the name huggingface.co does not resolve (Name or service not known)"
