@@ -15,8 +15,6 @@ saying what to run, rather than failing the report. See docs/evaluation.md.
 
 from __future__ import annotations
 
-import base64
-import html
 import json
 import math
 import os
@@ -27,8 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from evaluation.report_text import fmt, html_text, md_text, missing_fields, url
-from evaluation.visuals import pyplot
+from evaluation.report_doc import CSS, ReportDoc
+from evaluation.report_plots import plot_durations, plot_floor_plan, plot_training_curves, plot_training_extra
+from evaluation.report_text import fmt, html_text, missing_fields
 from evaluation.report_sections import (STAGE_SECTIONS, SectionContext, diagnosis_section, export_links,
                                         read_artifact, settings_section, settings_without_effect,
                                         warnings_section)
@@ -140,191 +139,6 @@ def stage_durations(run_dir: Path) -> list[dict]:
     return rows
 
 
-# ----------------------------------------------------------------------------- figures
-
-
-def plot_training_curves(series: dict[str, np.ndarray], path: Path, final_test: tuple[float, float, str] | None = None
-                         ) -> list[str]:
-    """The main training chart, large: loss (top) and PSNR (bottom) against iteration.
-
-    PSNR shows the training PSNR (raw faint, running mean solid when logged) and `final_test` =
-    (iteration, PSNR, label) — the evaluate stage's mean — as a star. Returns the legend labels
-    drawn (empty: nothing to draw, no file written)."""
-    if "loss" not in series and "psnr" not in series:
-        return []
-    plt = pyplot()
-    fig, (ax_l, ax_p) = plt.subplots(2, 1, figsize=(11, 8), sharex=True)
-    labels: list[str] = []
-    x = series["iteration"]
-
-    def line(ax, key, colour, name):
-        y = series.get(key)
-        if y is None:
-            return
-        ok = np.isfinite(x) & np.isfinite(y)
-        if not ok.any():
-            return
-        ema = series.get(f"ema_{key}")
-        if ema is not None and np.isfinite(ema).any():
-            # raw values jump from view to view: show them faint, their running mean solid
-            ax.plot(x[ok], y[ok], lw=0.8, color=colour, alpha=0.3, label=f"{name} (per iteration)")
-            oke = np.isfinite(x) & np.isfinite(ema)
-            ax.plot(x[oke], ema[oke], lw=1.8, color=colour, label=f"{name} (running mean)")
-            labels.extend([f"{name} (per iteration)", f"{name} (running mean)"])
-        else:
-            ax.plot(x[ok], y[ok], lw=1.6, color=colour, label=name)
-            labels.append(name)
-        if key == "loss" and np.all(y[ok] > 0):
-            ax.set_yscale("log")
-
-    line(ax_l, "loss", "C0", "training loss")
-    line(ax_p, "psnr", "C1", "training PSNR")
-    if final_test is not None and math.isfinite(final_test[1]):
-        ax_p.plot([final_test[0]], [final_test[1]], "*", color="C3", ms=16, markeredgecolor="k",
-                  label=final_test[2])
-        ax_p.axhline(final_test[1], color="C3", ls="--", lw=0.8, alpha=0.6)
-        labels.append(final_test[2])
-    if not labels:
-        plt.close(fig)
-        return []
-    ax_l.set_ylabel("loss (0.8·L1 + 0.2·D-SSIM + λ·layout)", fontsize=11)
-    ax_l.set_title("training loss", fontsize=13)
-    ax_p.set_ylabel("PSNR (dB)", fontsize=11)
-    ax_p.set_title("PSNR", fontsize=13)
-    ax_p.set_xlabel("iteration", fontsize=11)
-    for ax in (ax_l, ax_p):
-        ax.grid(alpha=0.3)
-        ax.tick_params(labelsize=10)
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=10, loc="best")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return labels
-
-
-def plot_training_extra(series: dict[str, np.ndarray], path: Path) -> bool:
-    """The smaller chart: #Gaussians against iteration, loss and PSNR against wall time."""
-    panels = []
-    if "num_gaussians" in series:
-        panels.append(("iteration", "num_gaussians", "iteration", "# Gaussians", "C2"))
-    if "elapsed" in series:
-        panels += [("elapsed", k, "wall time (s)", t, c) for k, t, c in
-                   (("loss", "training loss", "C0"), ("psnr", "training PSNR (dB)", "C1")) if k in series]
-    if not panels:
-        return False
-    plt = pyplot()
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 3.4), squeeze=False)
-    for ax, (xk, yk, xlabel, title, colour) in zip(axes[0], panels):
-        x, y = series[xk], series[yk]
-        ok = np.isfinite(x) & np.isfinite(y)
-        ax.plot(x[ok], y[ok], lw=1.2, color=colour)
-        if yk == "loss" and ok.any() and np.all(y[ok] > 0):
-            ax.set_yscale("log")
-        ax.set_xlabel(xlabel)
-        ax.set_title(title)
-        ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return True
-
-
-def plot_durations(rows: list[dict], path: Path) -> bool:
-    rows = [r for r in rows if r["duration_s"] is not None]
-    if not rows:
-        return False
-    plt = pyplot()
-    fig, ax = plt.subplots(figsize=(6, 0.45 * len(rows) + 1.0))
-    names = [r["stage"] for r in rows][::-1]
-    vals = [r["duration_s"] for r in rows][::-1]
-    ax.barh(names, vals, color="C0")
-    for y, v in enumerate(vals):
-        ax.text(v, y, f" {v:.1f} s", va="center", fontsize=8)
-    ax.set_xlabel("seconds (last run)")
-    ax.set_xlim(0, max(vals) * 1.25 + 1e-6)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return True
-
-
-def _ground_truth_rooms(scene) -> list[np.ndarray]:
-    fp = scene.manifest.floor_plan if scene is not None else None
-    if not fp:
-        return []
-    try:
-        doc = json.loads(scene.path(fp).read_text())
-        return [np.asarray(room["polygon"], dtype=float) for room in doc.get("rooms", [])]
-    except (OSError, ValueError, KeyError, TypeError):
-        return []
-
-
-def plot_floor_plan(scene, path: Path, rooms: list[dict] | None = None) -> list[str]:
-    """Every camera of the scene (train ● blue, test ▲ red, an arrow where the panorama's centre looks,
-    each labelled with its view name) over the merged floor plan (`rooms`, the union artifact's) and
-    the scene's ground-truth rooms where it has them, with a legend.
-
-    Returns the camera labels written on the figure, in the scene's order (empty: nothing drawn)."""
-    if scene is None or not scene.views:
-        return []
-    plt = pyplot()
-    from matplotlib.lines import Line2D
-
-    fig, ax = plt.subplots(figsize=(8, 8))
-    handles = []
-    for i, room in enumerate(rooms or []):
-        try:
-            rings = [np.asarray(room["polygon"], dtype=float)] + [np.asarray(h, dtype=float)
-                                                                   for h in room.get("holes", [])]
-        except (KeyError, TypeError, ValueError):
-            continue
-        for j, ring in enumerate(rings):
-            if ring.ndim != 2 or len(ring) < 3:
-                continue
-            ax.fill(ring[:, 0], ring[:, 1], facecolor="none" if j else "C2", alpha=0.2 if not j else 1.0)
-            closed = np.vstack([ring, ring[:1]])
-            ax.plot(closed[:, 0], closed[:, 1], "-", color="C2", lw=2)
-        if i == 0:
-            handles.append(Line2D([], [], color="C2", lw=2, label="merged floor plan (union stage)"))
-    gt_rooms = _ground_truth_rooms(scene)
-    for poly in gt_rooms:
-        closed = np.vstack([poly, poly[:1]])
-        ax.plot(closed[:, 0], closed[:, 1], "k--", lw=1.2)
-    if gt_rooms:
-        handles.append(Line2D([], [], color="k", ls="--", lw=1.2, label="ground-truth rooms"))
-    style = {"train": ("o", "C0", "train view"), "test": ("^", "C3", "test view")}
-    labels: list[str] = []
-    seen = set()
-    xz = np.array([[v.position[0], v.position[2]] for v in scene.views])
-    span = float(np.ptp(xz, axis=0).max()) if len(xz) > 1 else 1.0
-    arrow = max(0.08 * max(span, 1.0), 0.2)
-    for v in scene.views:
-        marker, colour, name = style.get(v.split, ("s", "C7", str(v.split)))
-        p = v.position
-        fwd = v.pose_matrix[:3, 2]  # camera z axis in the world: where the panorama's centre looks
-        ax.plot(p[0], p[2], marker, color=colour, ms=9, markeredgecolor="k")
-        ax.arrow(p[0], p[2], arrow * fwd[0], arrow * fwd[2], head_width=0.3 * arrow, color=colour,
-                 length_includes_head=True, zorder=4)
-        ax.annotate(v.name, (p[0], p[2]), textcoords="offset points", xytext=(6, 6), fontsize=9,
-                    color=colour, bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.6})
-        labels.append(v.name)
-        if v.split not in seen:
-            seen.add(v.split)
-            handles.append(Line2D([], [], marker=marker, color=colour, ls="none", ms=9, markeredgecolor="k",
-                                  label=f"{name} ({sum(1 for w in scene.views if w.split == v.split)})"))
-    ax.set_aspect("equal")
-    ax.set_xlabel("world x (m)")
-    ax.set_ylabel("world z (m)")
-    ax.set_title("floor plan and cameras (seen from above; arrows: panorama centre direction)")
-    ax.grid(alpha=0.3)
-    ax.legend(handles=handles, loc="best", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return labels
-
-
 def stage_params(run_dir: Path) -> dict[str, dict]:
     """{stage: meta.params} of every stage with an artifact, in pipeline order."""
     order = stage_order()
@@ -375,7 +189,7 @@ def run_links(run_dir: Path, out_dir: Path, config_path: Path) -> list[tuple[str
     return out
 
 
-def per_view_table(doc: _Doc, d: dict) -> None:
+def per_view_table(doc: ReportDoc, d: dict) -> None:
     """Each evaluated view's metrics (one row per view), then the mean; with two or more views a line
     naming the best and the worst view by PSNR, so a spread between views is not hidden by the mean."""
     views = d["views"]
@@ -401,7 +215,7 @@ def view_images(edir: Path, v: dict, scene, view, img_dir: Path) -> tuple[list[t
     """One evaluated view's images for the report: ground truth, render, error map and rendered depth
     (the evaluate stage's PNGs), and where the scene has ground-truth depth, that depth on the rendered
     depth's scale and the depth-error map (drawn here into img/). False-colour maps come with a colour
-    bar (units, range) drawn into img/. Returns (items for _Doc.images, notes)."""
+    bar (units, range) drawn into img/. Returns (items for ReportDoc.images, notes)."""
     from evaluation.visuals import (
         DEPTH_ERROR_UNITS,
         DEPTH_UNITS,
@@ -480,7 +294,7 @@ def view_images(edir: Path, v: dict, scene, view, img_dir: Path) -> tuple[list[t
     return items, notes
 
 
-def ablation_side_by_side(ablation_json: Path, doc: _Doc, img_dir: Path, max_views: int = 2) -> None:
+def ablation_side_by_side(ablation_json: Path, doc: ReportDoc, img_dir: Path, max_views: int = 2) -> None:
     """Held-out render, error and depth of the ablation's baseline (+ layout init) and 360 (+ layout reg)
     models side by side (seed 0 of each), so floaters and blur are visible: for the test view where
     the two differ most in PSNR and the first test view. Both depths share one colour scale."""
@@ -558,107 +372,6 @@ def _kernel_build_note(td: dict) -> str:
     return "" if seconds is None else f" (after {fmt(seconds, '.1f')} s compiling the C++ kernel, once per machine)"
 
 
-class _Doc:
-    """Builds the HTML and Markdown side by side so they always hold the same content; text goes
-    into both escaped (evaluation/report_text.py: html_text, md_text, url)."""
-
-    def __init__(self, img_dir: Path):
-        self.html: list[str] = []
-        self.md: list[str] = []
-        self.img_dir = img_dir
-
-    def h(self, level: int, text: str, anchor: str | None = None) -> None:
-        a = f' id="{anchor}"' if anchor else ""
-        self.html.append(f"<h{level}{a}>{html_text(text)}</h{level}>")
-        self.md.append(f"\n{'#' * level} {md_text(text)}\n")
-
-    def p(self, text: str, cls: str = "") -> None:
-        c = f' class="{cls}"' if cls else ""
-        self.html.append(f"<p{c}>{html_text(text)}</p>")
-        self.md.append(f"{'> ' if cls == 'warn' else ''}{md_text(text, paragraph_start=True)}\n")
-
-    def table(self, header: list[str], rows: list[list[str]]) -> None:
-        th = "".join(f"<th>{html_text(h)}</th>" for h in header)
-        trs = "".join("<tr>" + "".join(f"<td>{html_text(c)}</td>" for c in r) + "</tr>" for r in rows)
-        self.html.append(f"<table><thead><tr>{th}</tr></thead><tbody>{trs}</tbody></table>")
-        self.md.append("| " + " | ".join(md_text(h) for h in header) + " |")
-        self.md.append("|" + "---|" * len(header))
-        for r in rows:
-            self.md.append("| " + " | ".join(md_text(c) for c in r) + " |")
-        self.md.append("")
-
-    def details(self, summary: str, header: list[str], rows: list[list[str]]) -> None:
-        """A table folded away under a one-line summary (<details>; GitHub's Markdown renders it too)."""
-        self.html.append(f"<details><summary>{html_text(summary)}</summary>")
-        self.md.append(f"<details><summary>{html_text(summary)}</summary>\n")
-        self.table(header, rows)
-        self.html.append("</details>")
-        self.md.append("</details>\n")
-
-    def links(self, items: list[tuple[str, str]]) -> None:
-        """A bullet list of (relative href, text) links to files of the run."""
-        lis = "".join(f'<li><a href="{html.escape(url(href))}">{html_text(text)}</a></li>' for href, text in items)
-        self.html.append(f"<ul>{lis}</ul>")
-        for href, text in items:
-            self.md.append(f"- [{md_text(text)}]({url(href)})")
-        self.md.append("")
-
-    def _embed(self, src: Path, name_prefix: str) -> tuple[str, str]:
-        """Copy `src` into img/ (unless it is there already); its base64 and its name in img/."""
-        # gt/, renders/, errors/ and depth/ hold files of the same name: keep the folder in it
-        dst_name = src.name if src.name.startswith(name_prefix) else f"{name_prefix}-{src.parent.name}-{src.stem}.png"
-        dst = self.img_dir / dst_name
-        if src.resolve() != dst.resolve():
-            shutil.copyfile(src, dst)
-        return base64.b64encode(dst.read_bytes()).decode("ascii"), dst_name
-
-    def images(self, items: list[tuple], name_prefix: str) -> None:
-        """A row of images with captions: embedded in the HTML, copied beside the Markdown.
-
-        An item is (path, caption) or (path, caption, (colour bar path, units label)): a false-colour
-        map then shows its colour bar, with the units, right under it."""
-        figs, mds = [], []
-        for item in items:
-            src, caption = item[0], item[1]
-            cbar = item[2] if len(item) > 2 else None
-            b64, dst_name = self._embed(src, name_prefix)
-            extra, md_extra = "", ""
-            if cbar is not None:
-                cb64, cb_name = self._embed(cbar[0], name_prefix)
-                alt = f"colour bar: {cbar[1]}"
-                extra = f'<img class="cbar" alt="{html_text(alt)}" src="data:image/png;base64,{cb64}">'
-                md_extra = f"<br>![{md_text(alt)}]({url(f'{self.img_dir.name}/{cb_name}')})"
-            figs.append(
-                f'<figure><img alt="{html_text(caption)}" src="data:image/png;base64,{b64}">{extra}'
-                f"<figcaption>{html_text(caption)}</figcaption></figure>"
-            )
-            mds.append(f"![{md_text(caption)}]({url(f'{self.img_dir.name}/{dst_name}')}){md_extra}")
-        cls = "row single" if len(figs) == 1 else "row"
-        self.html.append(f'<div class="{cls}">' + "".join(figs) + "</div>")
-        if any(len(i) > 2 and i[2] is not None for i in items):
-            # maps with colour bars: one table cell each, so a bar stays under its map
-            self.md.append("| " + " | ".join(md_text(i[1]) for i in items) + " |")
-            self.md.append("|" + "---|" * len(items))
-            self.md.append("| " + " | ".join(mds) + " |\n")
-        else:
-            self.md.append(" ".join(mds) + "\n")
-
-
-_CSS = """
-body{font-family:system-ui,-apple-system,Segoe UI,sans-serif;margin:2em auto;max-width:1200px;color:#222;padding:0 1em}
-h1{border-bottom:2px solid #444}h2{border-bottom:1px solid #ccc;margin-top:2em}
-table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #ccc;padding:4px 10px;text-align:right}
-th{background:#f0f0f0}td:first-child,th:first-child{text-align:left}
-.row{display:flex;flex-wrap:wrap;gap:8px}figure{margin:0;flex:1 1 260px;max-width:100%}
-figure img{width:100%;image-rendering:pixelated;border:1px solid #ddd}
-figure img.cbar{image-rendering:auto;border:none}figcaption{font-size:.8em;color:#555}
-.row:not(.single) figure{max-width:calc(25% - 6px)}
-.single figure{flex:0 1 760px}
-.warn{background:#fff4d6;border-left:4px solid #e0a800;padding:.5em}.note{color:#666}
-details{margin:1em 0}details summary{cursor:pointer;color:#245}
-"""
-
-
 def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
                  states: dict[str, str] | None = None) -> ReportPaths:
     """Write report.html (self-contained) and report.md (+ img/, config.yaml) into `out_dir`
@@ -681,7 +394,7 @@ def build_report(run_dir: Path, scene=None, out_dir: Path | None = None,
 def _write_report(run_dir: Path, scene, out_dir: Path, states: dict[str, str] | None) -> ReportPaths:
     img_dir = run_path(out_dir, "img")
     img_dir.mkdir(parents=True)
-    doc = _Doc(img_dir)
+    doc = ReportDoc(img_dir)
     sections: list[str] = []
     name = scene.name if scene is not None else run_dir.name
     doc.h(1, f"pano-pipe report: {name}")
@@ -898,7 +611,7 @@ def _write_report(run_dir: Path, scene, out_dir: Path, states: dict[str, str] | 
     out_dir.mkdir(parents=True, exist_ok=True)
     page = (
         "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
-        f"<title>pano-pipe report: {html_text(name)}</title><style>{_CSS}</style></head><body>\n"
+        f"<title>pano-pipe report: {html_text(name)}</title><style>{CSS}</style></head><body>\n"
         + "\n".join(doc.html)
         + "\n</body></html>\n"
     )

@@ -53,7 +53,7 @@ def plot_pair_graph(data: PosesOutput, path: Path) -> bool:
 
 
 def add_poses_section(doc, run_dir: Path) -> bool:
-    """Append the poses section to the report `doc` (evaluation.report's _Doc); False (nothing
+    """Append the poses section to the report `doc` (evaluation.report_doc.ReportDoc); False (nothing
     added) when the run has no poses artifact, i.e. every pose came from scene.json."""
     from pipeline.engine import read_output
 
@@ -66,8 +66,7 @@ def add_poses_section(doc, run_dir: Path) -> bool:
     reason = data.method_reason
     doc.p(f"{placed} of {len(views)} views placed by {data.method}"
           + (f" (poses.method={data.requested_method}: {reason})" if reason else "")
-          + f"; scale {fmt(data.scale, '.4g')} m per unit ± {fmt(100 * data.scale_uncertainty, '.2g')} % "
-            f"from the {data.frame}; {data.points} sparse points"
+          + f"; {data.scale_text()}; {data.points} sparse points"
           + (f", median angular residual {fmt(data.residual_deg, '.3f')}°" if data.residual_deg is not None
              else "") + ".")
     if data.left_out:

@@ -1,6 +1,6 @@
 """Report sections that show what a stage did, each one function of the same shape.
 
-A section takes the page being written (report._Doc) and a SectionContext, writes its heading and
+A section takes the page being written (evaluation.report_doc.ReportDoc) and a SectionContext, writes its heading and
 content when its stage ran, and returns its id (report.ReportPaths.sections), or writes nothing
 and returns None when the run holds nothing for it: a section of a stage that did not run is
 absent, not a placeholder. `STAGE_SECTIONS` lists them in the order the page shows them, after

@@ -14,13 +14,8 @@ import numpy as np
 import pytest
 from evalhelpers import run_evaluate, write_train_artifact
 
-from evaluation.report import (
-    build_report,
-    plot_floor_plan,
-    plot_training_curves,
-    stage_durations,
-    training_series,
-)
+from evaluation.report import build_report, stage_durations, training_series
+from evaluation.report_plots import plot_floor_plan, plot_training_curves
 
 CHROMIUM = Path("/usr/bin/chromium")
 
