@@ -58,22 +58,22 @@ class TrainingObjective:
         cfg = self.cfg
         crops = self._crop_targets(view)
         if crops is not None:
-            photo, l1, s = crop_photometric_loss(pred, crops[1], crops[0], cfg.lambda_l1, cfg.lambda_dssim,
+            photo, l1, s = crop_photometric_loss(pred, crops[1], crops[0], cfg.loss.lambda_l1, cfg.loss.lambda_dssim,
                                                  crops[2])
         else:
-            photo, l1, s = photometric_loss(pred, view.image, cfg.lambda_l1, cfg.lambda_dssim, mask=view.mask,
+            photo, l1, s = photometric_loss(pred, view.image, cfg.loss.lambda_l1, cfg.loss.lambda_dssim, mask=view.mask,
                                             weight=self._pixel_weight(view))
         terms = LossTerms(photo, l1, s)
-        if cfg.lambda_scale > 0:
-            terms.loss = terms.loss + cfg.lambda_scale * torch.exp(g.log_scales).mean() / cfg.extent
-        if appearance is not None and cfg.lambda_appearance > 0:
-            terms.loss = terms.loss + cfg.lambda_appearance * appearance.regulariser()
-        if appearance is not None and cfg.lambda_appearance_gauge > 0:
-            terms.loss = terms.loss + cfg.lambda_appearance_gauge * appearance.gauge()
-        if cfg.lambda_coverage > 0:
+        if cfg.loss.lambda_scale > 0:
+            terms.loss = terms.loss + cfg.loss.lambda_scale * torch.exp(g.log_scales).mean() / cfg.extent
+        if appearance is not None and cfg.loss.lambda_appearance > 0:
+            terms.loss = terms.loss + cfg.loss.lambda_appearance * appearance.regulariser()
+        if appearance is not None and cfg.loss.lambda_appearance_gauge > 0:
+            terms.loss = terms.loss + cfg.loss.lambda_appearance_gauge * appearance.gauge()
+        if cfg.loss.lambda_coverage > 0:
             terms.coverage = self._coverage_loss(drawn, background, generator)
-            terms.loss = terms.loss + cfg.lambda_coverage * terms.coverage
-        if cfg.layout_reg and cfg.lambda_layout > 0:
+            terms.loss = terms.loss + cfg.loss.lambda_coverage * terms.coverage
+        if cfg.loss.layout_reg and cfg.loss.lambda_layout > 0:
             if self._layout_rows is None:
                 # the layout Gaussians' rows, anchors and normals change only with densification:
                 # selected once, not by the mask at every step
@@ -82,12 +82,12 @@ class TrainingObjective:
             idx, u0, normals = self._layout_rows
             if len(idx):
                 terms.layout = layout_loss(g.means[idx], u0, normals)
-                terms.loss = terms.loss + cfg.lambda_layout * terms.layout
+                terms.loss = terms.loss + cfg.loss.lambda_layout * terms.layout
         return terms
 
     def _crop_targets(self, view):
         """(resampler, ground-truth crops, crop masks) of a panorama view when crop_loss is on, else None."""
-        if not self.cfg.crop_loss or getattr(view.camera, "kind", None) != "equirect":
+        if not self.cfg.loss.crop_loss or getattr(view.camera, "kind", None) != "equirect":
             return None
         hit = self._crops.get(view.name)
         if hit is None:
@@ -117,11 +117,11 @@ class TrainingObjective:
         i, j = torch.randint(len(c), (2,), generator=generator).tolist()
         u, jx, jz = torch.rand(3, generator=generator, dtype=torch.float64).tolist()
         pos = c[i] + u * (c[j] - c[i])
-        pos = pos + pos.new_tensor([2 * jx - 1, 0.0, 2 * jz - 1]) * cfg.coverage_jitter * cfg.extent
+        pos = pos + pos.new_tensor([2 * jx - 1, 0.0, 2 * jz - 1]) * cfg.loss.coverage_jitter * cfg.extent
         viewmat = torch.eye(4, dtype=g.means.dtype, device=self.device)
         viewmat[:3, 3] = -pos.to(viewmat.dtype)
-        h = int(cfg.coverage_height)
-        out = render(g, viewmat, splatting.EquirectCamera(h, 2 * h), backend=cfg.backend,
+        h = int(cfg.loss.coverage_height)
+        out = render(g, viewmat, splatting.EquirectCamera(h, 2 * h), backend=cfg.render.backend,
                      background=background, sh_degree=0)
         return (1.0 - out.alpha).mean()
 
@@ -129,7 +129,7 @@ class TrainingObjective:
         """The per-pixel loss weight of `view`: its pixels' solid angle for a panorama when
         solid_angle_weighting is on, else None (a plain mean)."""
         cam = view.camera
-        if not self.cfg.solid_angle_weighting or getattr(cam, "kind", None) != "equirect":
+        if not self.cfg.loss.solid_angle_weighting or getattr(cam, "kind", None) != "equirect":
             return None
         key = (int(cam.height), int(cam.width))
         w = self._weights.get(key)

@@ -51,14 +51,14 @@ class DensifyStrategy:
     def from_config(cls, cfg, g: Gaussians) -> DensifyStrategy:
         """The strategy a TrainConfig describes, with empty statistics for model `g`."""
         return cls(
-            start=cfg.densify_from, stop=cfg.densify_until, every=cfg.densify_every,
-            grad_threshold=cfg.densify_grad_threshold, percent_dense=cfg.percent_dense, extent=cfg.extent,
-            min_opacity=cfg.min_opacity,
-            max_world_scale=cfg.max_world_scale * cfg.extent if cfg.max_world_scale else None,
-            max_screen_radius=cfg.max_screen_radius, size_prune_from=cfg.size_prune_from,
-            max_gaussians=cfg.max_gaussians, opacity_reset_every=cfg.opacity_reset_every,
-            mip_filter=cfg.mip_filter, mip_filter_variance=cfg.mip_filter_variance,
-            mip_filter_keep_integral=cfg.mip_filter_keep_integral,
+            start=cfg.densify.densify_from, stop=cfg.densify.densify_until, every=cfg.densify.densify_every,
+            grad_threshold=cfg.densify.densify_grad_threshold, percent_dense=cfg.densify.percent_dense, extent=cfg.extent,
+            min_opacity=cfg.densify.min_opacity,
+            max_world_scale=cfg.densify.max_world_scale * cfg.extent if cfg.densify.max_world_scale else None,
+            max_screen_radius=cfg.densify.max_screen_radius, size_prune_from=cfg.densify.size_prune_from,
+            max_gaussians=cfg.densify.max_gaussians, opacity_reset_every=cfg.densify.opacity_reset_every,
+            mip_filter=cfg.render.mip_filter, mip_filter_variance=cfg.render.mip_filter_variance,
+            mip_filter_keep_integral=cfg.render.mip_filter_keep_integral,
             stats=DensifyStats.zeros(len(g), dtype=g.means.dtype, device=g.means.device))
 
     def _prunes_by_size(self, it: int) -> bool:

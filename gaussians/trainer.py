@@ -22,7 +22,7 @@ import json
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -31,117 +31,17 @@ import torch
 from gaussians import checkpoint
 from gaussians.appearance import Appearance
 from gaussians.checkpoint import CHECKPOINT_NAME, plain_number
+from gaussians.config import TrainConfig
 from gaussians.densify import DensifyStats
 from gaussians.losses import psnr, psnr_tensor
-from gaussians.mip_filter import DEFAULT_VARIANCE, filter_variance, filtered, sampling_rate
-from gaussians.model import DEFAULT_EPS2D, PARAM_NAMES, Gaussians, render
+from gaussians.mip_filter import filter_variance, filtered, sampling_rate
+from gaussians.model import PARAM_NAMES, Gaussians, render
 from gaussians.objective import TrainingObjective
 from gaussians.optim import Adam, expon_lr
 from gaussians.strategy import DensifyStrategy
 from gaussians.view_jitter import TurnMaps, random_turn, turn_panorama
 
 __all__ = ["TrainConfig", "TrainView", "Trainer", "scene_extent", "CHECKPOINT_NAME"]
-
-@dataclass
-class TrainConfig:
-    iterations: int = 3000
-    # loss
-    lambda_l1: float = 0.8
-    lambda_dssim: float = 0.2
-    lambda_layout: float = 0.1
-    layout_reg: bool = True
-    #: weigh each panorama pixel's L1 and SSIM by its solid angle (cos latitude), so the loss counts
-    #: every steradian alike (perspective views are unweighted)
-    solid_angle_weighting: bool = False
-    #: λ · mean Gaussian scale / extent (the official 360-GS code's mean-scale penalty on floaters)
-    lambda_scale: float = 0.0
-    #: largest ratio of a Gaussian's longest axis to its second longest, enforced after every step
-    #: (None = free): keeps needles from forming (a flat disc, ratio ~1, is unaffected)
-    max_anisotropy: float | None = None
-    #: measure a panorama's L1 and D-SSIM on its eight 120° perspective crops (resampled from the
-    #: render, gaussians/crop_loss.py) instead of on the equirectangular image
-    crop_loss: bool = False
-    #: weight of the novel-view coverage loss: mean(1 − alpha) of a panorama rendered from a random
-    #: position between the training cameras (`coverage_height` rows). Indoors every ray from
-    #: inside the room ends on a surface, so a hole there is an error no training view shows
-    #: (the sparse-capture study in docs/training.md)
-    lambda_coverage: float = 0.0
-    coverage_height: int = 64
-    #: horizontal jitter of those positions (× extent) around the segment between two cameras
-    coverage_jitter: float = 0.05
-    #: Mip-Splatting's 3D smoothing filter (gaussians/mip_filter.py): every render draws each Gaussian
-    #: convolved with an isotropic low-pass of variance `mip_filter_variance` / ν², ν the finest rate
-    #: (pixels per metre) at which a training camera samples it, opacity scaled to keep its integral;
-    #: the exported model holds the filtered scales and opacities
-    mip_filter: bool = False
-    mip_filter_variance: float = DEFAULT_VARIANCE
-    #: scale the filtered opacity by sqrt(det Σ / det Σ') (Mip-Splatting); False widens only (ablation)
-    mip_filter_keep_integral: bool = True
-    #: turn each training panorama's camera by a random rotation every time it is drawn, its ground
-    #: truth and mask resampled to match (gaussians/view_jitter.py): supervision between the pixel
-    #: centres, as the crops get
-    random_turns: bool = False
-    #: largest tilt of those turns (degrees; the yaw is free)
-    random_turn_tilt_deg: float = 1.0
-    #: how the turned ground truth is interpolated: "bilinear" or "bicubic"
-    random_turn_interp: str = "bicubic"
-    #: the renderer's screen-space dilation (squared pixels) the model is fitted with; the exported
-    #: model keeps it (Gaussians.eps2d), so every later render uses it too
-    eps2d: float = DEFAULT_EPS2D
-    # learning rates (3DGS); the position rates are multiplied by the scene extent
-    lr_position_init: float = 1.6e-4
-    lr_position_final: float = 1.6e-6
-    lr_sh_dc: float = 2.5e-3
-    lr_sh_rest: float = 2.5e-3 / 20.0
-    lr_opacity: float = 0.05
-    lr_scaling: float = 5e-3
-    lr_rotation: float = 1e-3
-    extent: float = 1.0
-    # spherical harmonics
-    sh_degree: int = 3
-    sh_degree_every: int = 1000
-    # density control (3DGS schedule)
-    densify_from: int = 500
-    densify_until: int = 15000
-    densify_every: int = 100
-    densify_grad_threshold: float = 2e-4
-    percent_dense: float = 0.01
-    min_opacity: float = 0.005
-    opacity_reset_every: int = 3000
-    max_world_scale: float | None = 0.1  # × extent; prunes after the first opacity reset, as 3DGS
-    max_screen_radius: float | None = None  # radians; None = off
-    #: iteration from which max_world_scale / max_screen_radius prune; None = after the first opacity reset
-    size_prune_from: int | None = None
-    max_gaussians: int | None = 200_000
-    # misc
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    #: train against a random background colour each iteration (drawn from the trainer's generator):
-    #: a pixel left partly transparent then cannot match its ground truth, so surfaces become opaque
-    #: (every ray of an indoor panorama ends on one); renders for evaluation use `background`
-    random_background: bool = False
-    seed: int = 0
-    backend: str | None = None
-    #: torch device of the model, images, optimiser and losses; not in the fingerprint, so a
-    #: checkpoint resumes on another device (checkpoints hold CPU tensors)
-    device: str = "cpu"
-    log_every: int = 10
-    checkpoint_every: int = 500
-    # per-panorama appearance (gaussians/appearance.py)
-    appearance: bool = False
-    lambda_appearance: float = 0.01
-    #: weight of the penalty on the mean transform's distance from the identity (Appearance.gauge)
-    lambda_appearance_gauge: float = 0.0
-    lr_appearance: float = 1e-3
-
-    def fingerprint(self) -> str:
-        """What a checkpoint must match to be resumed (everything but logging/checkpoint cadence)."""
-        import hashlib
-
-        d = asdict(self)
-        for k in ("log_every", "checkpoint_every", "device"):
-            d.pop(k)
-        return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
 
 @dataclass
 class TrainView:
@@ -216,10 +116,10 @@ class Trainer:
         self.views = [v.to(self.device) for v in views]
         self.g = g.detach().to(device=self.device)
         self.g.requires_grad_(True)
-        lr_means = cfg.lr_position_init * cfg.extent
+        lr_means = cfg.optim.lr_position_init * cfg.extent
         self.opt = Adam({
-            "means": lr_means, "quats": cfg.lr_rotation, "log_scales": cfg.lr_scaling,
-            "opacity_logits": cfg.lr_opacity, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_rest,
+            "means": lr_means, "quats": cfg.optim.lr_rotation, "log_scales": cfg.optim.lr_scaling,
+            "opacity_logits": cfg.optim.lr_opacity, "sh_dc": cfg.optim.lr_sh_dc, "sh_rest": cfg.optim.lr_sh_rest,
         })
         self.strategy = DensifyStrategy.from_config(cfg, self.g)
         self.objective = TrainingObjective(cfg, self.views, self.device)
@@ -232,7 +132,7 @@ class Trainer:
         self.train_seconds = 0.0
         self.nonfinite_steps = 0
         self.log_path = log_path
-        self._bg = torch.tensor(cfg.background, dtype=self.g.means.dtype, device=self.device)
+        self._bg = torch.tensor(cfg.render.background, dtype=self.g.means.dtype, device=self.device)
         self.last_loss: float | None = None
         #: Per-panorama colour transforms (None: off); applied to training renders only.
         self.appearance = self.new_appearance()
@@ -246,10 +146,10 @@ class Trainer:
         self._turn_maps: dict[tuple[int, int], TurnMaps] = {}
 
     def new_appearance(self) -> Appearance | None:
-        if not self.cfg.appearance:
+        if not self.cfg.appearance.enabled:
             return None
         names = list(dict.fromkeys(Appearance.panorama_of(v.name) for v in self.views))
-        return Appearance(names, self.cfg.lr_appearance, self.g.means.dtype, device=self.device)
+        return Appearance(names, self.cfg.optim.lr_appearance, self.g.means.dtype, device=self.device)
 
     def _as_trained(self, view: TrainView, image: torch.Tensor) -> torch.Tensor:
         """A render as the loss sees it: through the view's appearance transform, when on."""
@@ -261,11 +161,11 @@ class Trainer:
         recomputes them every 100 iterations; here it costs little, and a function of the model
         alone keeps a resumed run identical to an uninterrupted one)."""
         g = self.g
-        if self.cfg.mip_filter:
+        if self.cfg.render.mip_filter:
             rate = sampling_rate(g.means.detach(), [v.viewmat for v in self.views], [v.camera for v in self.views])
-            g = filtered(g, filter_variance(rate, self.cfg.mip_filter_variance), self.cfg.mip_filter_keep_integral)
+            g = filtered(g, filter_variance(rate, self.cfg.render.mip_filter_variance), self.cfg.render.mip_filter_keep_integral)
         # drawn with the training dilation, which the exported model keeps (Gaussians.eps2d)
-        return g if g.eps2d == self.cfg.eps2d else replace(g, eps2d=self.cfg.eps2d)
+        return g if g.eps2d == self.cfg.render.eps2d else replace(g, eps2d=self.cfg.render.eps2d)
 
     def _turned(self, view: TrainView) -> TrainView:
         """`view` with its camera frame turned by a random rotation R, the ground truth and mask
@@ -274,11 +174,11 @@ class Trainer:
         turn_maps = self._turn_maps.get(key)
         if turn_maps is None:
             turn_maps = self._turn_maps[key] = TurnMaps(*key, device=self.device)
-        rot = random_turn(self.cfg.random_turn_tilt_deg, self.gen)
+        rot = random_turn(self.cfg.turns.random_turn_tilt_deg, self.gen)
         maps = turn_maps.maps(rot)
         with torch.no_grad():
-            image = turn_panorama(view.image, maps, self.cfg.random_turn_interp)
-            if self.cfg.random_turn_interp != "bilinear":
+            image = turn_panorama(view.image, maps, self.cfg.turns.random_turn_interp)
+            if self.cfg.turns.random_turn_interp != "bilinear":
                 image = image.clamp_(0.0, 1.0)
             mask = None
             if view.mask is not None:
@@ -305,14 +205,14 @@ class Trainer:
         self.iteration = it
         self._schedule(it)
         view = self._next_view()
-        if cfg.random_turns and getattr(view.camera, "kind", None) == "equirect":
+        if cfg.turns.random_turns and getattr(view.camera, "kind", None) == "equirect":
             view = self._turned(view)
         lap = _Laps(self.part_seconds, self.device)
         bg = self._bg
-        if cfg.random_background:
+        if cfg.render.random_background:
             bg = torch.rand(3, generator=self.gen, dtype=self._bg.dtype).to(self.device)
         drawn = self._drawn()
-        out = render(drawn, view.viewmat, view.camera, backend=cfg.backend, background=bg, sh_degree=self.active_sh)
+        out = render(drawn, view.viewmat, view.camera, backend=cfg.render.backend, background=bg, sh_degree=self.active_sh)
         lap("render")
         pred = self._as_trained(view, out.image)
         terms = self.objective(self.g, drawn, pred, view, self.appearance, self._bg, self.gen)
@@ -345,10 +245,10 @@ class Trainer:
     def _schedule(self, it: int) -> None:
         """Iteration `it`'s position learning rate and SH bands."""
         cfg = self.cfg
-        self.opt.lrs["means"] = expon_lr(it, cfg.lr_position_init * cfg.extent, cfg.lr_position_final * cfg.extent,
+        self.opt.lrs["means"] = expon_lr(it, cfg.optim.lr_position_init * cfg.extent, cfg.optim.lr_position_final * cfg.extent,
                                          cfg.iterations)
-        if cfg.sh_degree_every > 0 and it % cfg.sh_degree_every == 0:
-            self.active_sh = min(self.active_sh + 1, cfg.sh_degree, self.g.sh_degree)
+        if cfg.optim.sh_degree_every > 0 and it % cfg.optim.sh_degree_every == 0:
+            self.active_sh = min(self.active_sh + 1, cfg.optim.sh_degree, self.g.sh_degree)
 
     def _optimiser_step(self) -> None:
         """Adam on every parameter (non-finite gradients zeroed and counted, without a host sync
@@ -368,8 +268,8 @@ class Trainer:
         # quaternions: keep them away from zero (the renderer copes, Adam's steps would not)
         qn = torch.linalg.vector_norm(g.quats, dim=-1, keepdim=True)
         g.quats.copy_(torch.where(qn > 1e-8, g.quats, g.quats.new_tensor([1.0, 0, 0, 0])))
-        if self.cfg.max_anisotropy is not None:
-            clamp_anisotropy_(g.log_scales, self.cfg.max_anisotropy)
+        if self.cfg.optim.max_anisotropy is not None:
+            clamp_anisotropy_(g.log_scales, self.cfg.optim.max_anisotropy)
 
     # -- the loop --------------------------------------------------------------
     def train(self, until: int | None = None,
@@ -426,7 +326,7 @@ class Trainer:
         vals = []
         drawn = self._drawn()
         for v in views or self.views:
-            out = render(drawn, v.viewmat, v.camera, backend=self.cfg.backend, background=self._bg,
+            out = render(drawn, v.viewmat, v.camera, backend=self.cfg.render.backend, background=self._bg,
                          sh_degree=self.active_sh)
             vals.append(psnr(self._as_trained(v, out.image), v.image, v.mask))
         return float(np.mean(vals))

@@ -27,7 +27,8 @@ import splatting
 from gaussians.init import from_cloud, random_points
 from gaussians.model import DEFAULT_EPS2D, Gaussians
 from gaussians.ply import nonfinite_problem, save_ply
-from gaussians.trainer import CHECKPOINT_NAME, Trainer, TrainConfig, TrainView, scene_extent
+from gaussians.config import TrainConfig
+from gaussians.trainer import CHECKPOINT_NAME, Trainer, TrainView, scene_extent
 from panogeom.equirect import angles_to_pixel, dirs_to_angles
 from panogeom.images import read_rgb
 from runfs.errors import PanoError, one_line
@@ -66,7 +67,7 @@ PROJECTION_DEFAULTS: dict[str, dict] = {
 
 
 #: The trainer's defaults, which the settings below take as theirs (one place for each number)
-_TRAINER = TrainConfig()
+_TRAINER = TrainConfig().flat()
 #: The learning rates `lr_scale` multiplies
 _SCALED_LRS = ("lr_position_init", "lr_position_final", "lr_sh_dc", "lr_sh_rest", "lr_opacity", "lr_scaling",
                "lr_rotation")
@@ -95,22 +96,22 @@ class Params(StageParams):
         default=None, ge=8, json_schema_extra={"pixels": "square"},
         description="Crop side in pixels (None = the training height: 512 at 512x1024).")
     layout_reg: bool = Field(
-        default=_TRAINER.layout_reg, description="L_layout on/off (ablation); needs the layout cloud of the sampling stage.")
-    lambda_l1: float = Field(default=_TRAINER.lambda_l1, ge=0, description="λ1: weight of the L1 photometric loss.")
+        default=_TRAINER["layout_reg"], description="L_layout on/off (ablation); needs the layout cloud of the sampling stage.")
+    lambda_l1: float = Field(default=_TRAINER["lambda_l1"], ge=0, description="λ1: weight of the L1 photometric loss.")
     lambda_dssim: float = Field(
-        default=_TRAINER.lambda_dssim, ge=0, description="λ2: weight of the D-SSIM loss (1 - SSIM) / 2.")
+        default=_TRAINER["lambda_dssim"], ge=0, description="λ2: weight of the D-SSIM loss (1 - SSIM) / 2.")
     solid_angle_weighting: bool = Field(
-        default=_TRAINER.solid_angle_weighting, description="360: weigh each panorama pixel's L1 and SSIM by its solid angle (cos latitude).")
+        default=_TRAINER["solid_angle_weighting"], description="360: weigh each panorama pixel's L1 and SSIM by its solid angle (cos latitude).")
     lambda_scale: float = Field(
-        default=_TRAINER.lambda_scale, ge=0, description="Weight of the mean-scale penalty (mean Gaussian scale / extent; official 360-GS).")
+        default=_TRAINER["lambda_scale"], ge=0, description="Weight of the mean-scale penalty (mean Gaussian scale / extent; official 360-GS).")
     max_anisotropy: float | None = Field(
         default=None, ge=1, description="Longest / second-longest axis of a Gaussian at most this (None = free): "
                                        "no needles.")
     crop_loss: bool = Field(
-        default=_TRAINER.crop_loss, description="360: measure L1 and D-SSIM on the eight 120° perspective crops resampled "
+        default=_TRAINER["crop_loss"], description="360: measure L1 and D-SSIM on the eight 120° perspective crops resampled "
                                    "from the rendered panorama instead of on the panorama itself.")
     lambda_coverage: float = Field(
-        default=_TRAINER.lambda_coverage, ge=0, description="Weight of the novel-view coverage loss: mean(1 - alpha) of a small panorama "
+        default=_TRAINER["lambda_coverage"], ge=0, description="Weight of the novel-view coverage loss: mean(1 - alpha) of a small panorama "
         "rendered from a random point between the training cameras (indoors every ray ends on a surface); "
         "sparse captures: 1 with lr_scale=0.125 (docs/training.md).")
     coverage_height: int | None = Field(
@@ -122,9 +123,9 @@ class Params(StageParams):
         "is drawn (free yaw, tilt up to random_turn_tilt_deg), its ground truth resampled to match: the model is "
         "supervised between the pixel centres, as the crops are. None = the projection's default (on for 360).")
     random_turn_tilt_deg: float = Field(
-        default=_TRAINER.random_turn_tilt_deg, ge=0, le=180, description="Largest tilt of those turns (degrees).")
+        default=_TRAINER["random_turn_tilt_deg"], ge=0, le=180, description="Largest tilt of those turns (degrees).")
     random_turn_interp: Literal["bilinear", "bicubic"] = Field(
-        default=_TRAINER.random_turn_interp, description="Interpolation of the turned ground truth (bicubic blurs it less).")
+        default=_TRAINER["random_turn_interp"], description="Interpolation of the turned ground truth (bicubic blurs it less).")
     eps2d: float | None = Field(
         default=None, ge=0, description="The renderer's screen-space dilation (squared pixels) the model is "
         "fitted with and, saved with it, drawn with. None = the projection's default: 0.05 for 360 (with "
@@ -135,9 +136,9 @@ class Params(StageParams):
         "training pixel); the exported model holds the filtered scales and opacities. None = the projection's "
         "default (off for every projection).")
     mip_filter_variance: float = Field(
-        default=_TRAINER.mip_filter_variance, gt=0, description="The low-pass's variance in squared sampling intervals (Mip-Splatting: 0.2).")
+        default=_TRAINER["mip_filter_variance"], gt=0, description="The low-pass's variance in squared sampling intervals (Mip-Splatting: 0.2).")
     mip_filter_keep_integral: bool = Field(
-        default=_TRAINER.mip_filter_keep_integral, description="Lower a widened Gaussian's opacity so its integral stays (Mip-Splatting); "
+        default=_TRAINER["mip_filter_keep_integral"], description="Lower a widened Gaussian's opacity so its integral stays (Mip-Splatting); "
                                   "false widens only (an ablation).")
     lambda_layout: float | None = Field(
         default=None, ge=0,
@@ -147,44 +148,44 @@ class Params(StageParams):
         "0.5 for 360 (a panorama iteration updates every Gaussian, a crop iteration about a quarter of them), "
         "1 for the crops.")
     lr_position_init: float = Field(
-        default=_TRAINER.lr_position_init, gt=0,
+        default=_TRAINER["lr_position_init"], gt=0,
         description="Adam learning rate of the Gaussian centres at iteration 1, × extent (m).")
     lr_position_final: float = Field(
-        default=_TRAINER.lr_position_final, gt=0,
+        default=_TRAINER["lr_position_final"], gt=0,
         description="The centres' learning rate at the last iteration, × extent (exponential decay in "
                     "between).")
     lr_sh_dc: float = Field(
-        default=_TRAINER.lr_sh_dc, ge=0, description="Adam learning rate of the base colour (SH band 0).")
+        default=_TRAINER["lr_sh_dc"], ge=0, description="Adam learning rate of the base colour (SH band 0).")
     lr_sh_rest: float = Field(
-        default=_TRAINER.lr_sh_rest, ge=0,
+        default=_TRAINER["lr_sh_rest"], ge=0,
         description="Adam learning rate of the view-dependent colour (SH bands 1-3).")
-    lr_opacity: float = Field(default=_TRAINER.lr_opacity, ge=0, description="Adam learning rate of the opacity logits.")
+    lr_opacity: float = Field(default=_TRAINER["lr_opacity"], ge=0, description="Adam learning rate of the opacity logits.")
     lr_scaling: float = Field(
-        default=_TRAINER.lr_scaling, ge=0, description="Adam learning rate of the log scales (log metres).")
+        default=_TRAINER["lr_scaling"], ge=0, description="Adam learning rate of the log scales (log metres).")
     lr_rotation: float = Field(
-        default=_TRAINER.lr_rotation, ge=0, description="Adam learning rate of the rotation quaternions.")
+        default=_TRAINER["lr_rotation"], ge=0, description="Adam learning rate of the rotation quaternions.")
     extent: float | None = Field(
         default=None, gt=0, description="Scene size (m); default half the diagonal of the initial points' box.")
     sh_degree: int = Field(
-        default=_TRAINER.sh_degree, ge=0, le=3, description="Highest spherical-harmonics degree of the colours.")
+        default=_TRAINER["sh_degree"], ge=0, le=3, description="Highest spherical-harmonics degree of the colours.")
     sh_degree_every: int = Field(
-        default=_TRAINER.sh_degree_every, ge=1, description="Iterations between turning on one more SH degree (up to sh_degree).")
+        default=_TRAINER["sh_degree_every"], ge=1, description="Iterations between turning on one more SH degree (up to sh_degree).")
     densify_from: int | None = Field(
         default=None, ge=0,
         description="First iteration that clones, splits and prunes (None: the preset's).")
     densify_until: int | None = Field(
         default=None, ge=0, description="Last iteration that densifies (None: the preset's).")
-    densify_every: int = Field(default=_TRAINER.densify_every, ge=1, description="Iterations between densification steps.")
+    densify_every: int = Field(default=_TRAINER["densify_every"], ge=1, description="Iterations between densification steps.")
     densify_grad_threshold: float = Field(
-        default=_TRAINER.densify_grad_threshold, gt=0, description="On the angular view-space gradient (resolution independent).")
+        default=_TRAINER["densify_grad_threshold"], gt=0, description="On the angular view-space gradient (resolution independent).")
     percent_dense: float = Field(
-        default=_TRAINER.percent_dense, gt=0, description="Gaussians larger than this × extent are split, smaller ones cloned.")
+        default=_TRAINER["percent_dense"], gt=0, description="Gaussians larger than this × extent are split, smaller ones cloned.")
     min_opacity: float = Field(
-        default=_TRAINER.min_opacity, ge=0, lt=1, description="Densification prunes Gaussians less opaque than this.")
+        default=_TRAINER["min_opacity"], ge=0, lt=1, description="Densification prunes Gaussians less opaque than this.")
     opacity_reset_every: int | None = Field(
         default=None, ge=0, description="Iterations between opacity resets (0 = never; None: the preset's).")
     max_world_scale: float | None = Field(
-        default=_TRAINER.max_world_scale, gt=0, description="Prune scale > this × extent after the first opacity reset (None = off).")
+        default=_TRAINER["max_world_scale"], gt=0, description="Prune scale > this × extent after the first opacity reset (None = off).")
     max_screen_radius: float | None = Field(
         default=None, gt=0, description="Prune a screen radius > this (radians) after the first reset.")
     size_prune_from: int | None = Field(
@@ -197,28 +198,28 @@ class Params(StageParams):
     init_opacity: float = Field(default=0.1, gt=0, lt=1, description="Opacity of every initial Gaussian.")
     layout_flatten: float = Field(default=0.1, gt=0, le=1, description="Thickness / width of layout Gaussians.")
     background: tuple[float, float, float] = Field(
-        default=_TRAINER.background, description="RGB in [0, 1] behind the Gaussians while training.")
+        default=_TRAINER["background"], description="RGB in [0, 1] behind the Gaussians while training.")
     random_background: bool | None = Field(
         default=None, description="Train against a random background colour each iteration (opaque surfaces); "
                                   "evaluation renders use `background`. None = the projection's default "
                                   "(off for every projection).")
     seed: int = Field(
-        default=_TRAINER.seed, ge=0, le=2**32 - 1,
+        default=_TRAINER["seed"], ge=0, le=2**32 - 1,
         description="Random seed of the view order, random init and densification.")
     backend: Literal["cpp", "cuda", "torch"] | None = Field(
         default=None, description="splatting backend; None = its default for the device (cpp on CPU, cuda on CUDA).")
     device: Literal["auto", "cpu", "cuda"] = Field(
         default="auto", description="Where training runs: auto = CUDA when available, else the CPU.")
     threads: int | None = Field(default=None, ge=1, description="torch threads (None = leave as is).")
-    log_every: int = Field(default=_TRAINER.log_every, ge=1, description="Iterations between records in train_log.jsonl.")
-    checkpoint_every: int = Field(default=_TRAINER.checkpoint_every, ge=0, description="0 = only on Ctrl-C.")
-    appearance: bool = Field(default=_TRAINER.appearance, description="A learned colour gain and bias per training panorama "
+    log_every: int = Field(default=_TRAINER["log_every"], ge=1, description="Iterations between records in train_log.jsonl.")
+    checkpoint_every: int = Field(default=_TRAINER["checkpoint_every"], ge=0, description="0 = only on Ctrl-C.")
+    appearance: bool = Field(default=_TRAINER["appearance"], description="A learned colour gain and bias per training panorama "
                                                        "(exposure, white balance), applied while training only.")
-    lambda_appearance: float = Field(default=_TRAINER.lambda_appearance, ge=0, description="Weight pulling the transforms to identity.")
+    lambda_appearance: float = Field(default=_TRAINER["lambda_appearance"], ge=0, description="Weight pulling the transforms to identity.")
     lambda_appearance_gauge: float = Field(
-        default=_TRAINER.lambda_appearance_gauge, ge=0, description="Weight pinning the mean transform over the panoramas to the identity "
+        default=_TRAINER["lambda_appearance_gauge"], ge=0, description="Weight pinning the mean transform over the panoramas to the identity "
         "(the model's colours then match the panoramas' mean exposure, which held-out views are rendered at).")
-    lr_appearance: float = Field(default=_TRAINER.lr_appearance, gt=0, description="Adam learning rate of the transforms.")
+    lr_appearance: float = Field(default=_TRAINER["lr_appearance"], gt=0, description="Adam learning rate of the transforms.")
 
     def resolved(self, key: str):
         """The value of `key`: as set, else the preset's, else the projection's default (PROJECTION_DEFAULTS)."""
@@ -364,7 +365,7 @@ def build_views(images: dict[str, np.ndarray], viewmats: dict[str, np.ndarray], 
 def make_config(p: Params, num_train_views: int, extent: float, device: str = "cpu") -> TrainConfig:
     """The trainer's configuration: every setting it shares with Params as resolved (preset, then
     projection defaults), the learning rates times `lr_scale`, and what the stage derives."""
-    shared = {f.name for f in dataclasses.fields(TrainConfig)} & set(Params.model_fields)
+    shared = set(TrainConfig.setting_names()) & set(Params.model_fields)
     values = {k: p.resolved(k) for k in shared}
     lr = float(p.resolved("lr_scale"))
     values.update({k: lr * values[k] for k in _SCALED_LRS})
@@ -376,7 +377,7 @@ def make_config(p: Params, num_train_views: int, extent: float, device: str = "c
         coverage_height=p.coverage_height or max(4, int(p.resolved("height")) // 2),
         extent=float(extent), device=device,
     )
-    return TrainConfig(**values)
+    return TrainConfig.of(**values)
 
 
 def init_fingerprint(g: Gaussians, views: list[TrainView]) -> str:
@@ -602,14 +603,14 @@ def run(ctx: StageContext) -> TrainOutput:
         device=device,
         final_train_psnr=final_psnr,
         preset=p.preset,
-        lambda_layout=cfg.lambda_layout if p.layout_reg else 0.0,
+        lambda_layout=cfg.loss.lambda_layout if p.layout_reg else 0.0,
         extent=cfg.extent,
         resumed_from=resumed_from,
         step_seconds=None if trainer.part_seconds is None else {
             k: round(v, 3) for k, v in trainer.part_seconds.items()},
         appearance="appearance.json" if trainer.appearance is not None else None,
         # lambda_layout and coverage_height are settled by make_config (view count, height)
-        settings={**p.values_used(), "lambda_layout": cfg.lambda_layout, "coverage_height": cfg.coverage_height},
+        settings={**p.values_used(), "lambda_layout": cfg.loss.lambda_layout, "coverage_height": cfg.loss.coverage_height},
     )
 
 

@@ -10,7 +10,8 @@ import torch
 
 import splatting
 from gaussians.model import Gaussians, render
-from gaussians.trainer import TrainConfig, Trainer, TrainView
+from gaussians.config import TrainConfig
+from gaussians.trainer import Trainer, TrainView
 from gaussians.view_jitter import TurnMaps, random_turn, turn_panorama
 from panogeom.rotate import rotate_equirect, yaw_matrix
 
@@ -85,7 +86,7 @@ def test_turned_view_matches_the_render_of_the_turned_camera():
     mask = torch.ones(32, 64, dtype=torch.bool)
     mask[24:] = False  # the bottom quarter masked out
     view = TrainView("pano_00", gt, viewmat, cam, mask)
-    tr = Trainer(g, [view], TrainConfig(iterations=1, random_turns=True, random_turn_tilt_deg=20.0, backend="torch"))
+    tr = Trainer(g, [view], TrainConfig.of(iterations=1, random_turns=True, random_turn_tilt_deg=20.0, backend="torch"))
     errors = []
     for _ in range(3):
         turned = tr._turned(tr.views[0])
@@ -121,7 +122,7 @@ def test_training_renders_use_the_configured_dilation():
     gt = render(g, viewmat, cam, backend="torch", sh_degree=0, eps2d=0.05).image.detach()
     losses = {}
     for eps in (0.05, 0.3):
-        cfg = TrainConfig(iterations=1, eps2d=eps, backend="torch", lambda_dssim=0.0, layout_reg=False,
+        cfg = TrainConfig.of(iterations=1, eps2d=eps, backend="torch", lambda_dssim=0.0, layout_reg=False,
                           densify_from=10)
         tr = Trainer(g.detach(), [TrainView("pano_00", gt, viewmat, cam)], cfg)
         losses[eps] = float(tr.step()["l1"])

@@ -13,7 +13,8 @@ import torch
 
 import splatting
 from gaussians.init import random_points
-from gaussians.trainer import TrainConfig, Trainer, TrainView, scene_extent
+from gaussians.config import TrainConfig
+from gaussians.trainer import Trainer, TrainView, scene_extent
 from panogeom.equirect import nadir_cap
 from schemas.scene import REAL_CAPTURE_NADIR_DEG, SceneManifest
 
@@ -75,7 +76,7 @@ def test_appearance_recovers_a_known_exposure_on_real_pixels():
     views.append(TrainView("pano_18_dark", views[0].image * gain, views[0].viewmat, views[0].camera, mask))
     cams = np.stack([v.position for v in manifest.views])
     g = random_points(1500, 0, camera_positions=cams)
-    cfg = TrainConfig(iterations=150, extent=scene_extent(g.means), densify_from=30, densify_until=120,
+    cfg = TrainConfig.of(iterations=150, extent=scene_extent(g.means), densify_from=30, densify_until=120,
                       densify_every=30, opacity_reset_every=0, sh_degree_every=50, max_gaussians=4000,
                       log_every=50, checkpoint_every=0, backend="cpp", lambda_layout=0.0, appearance=True,
                       lr_appearance=0.01, seed=0)

@@ -74,7 +74,7 @@ def test_training_learns_a_darker_panoramas_exposure(tiny_room):
     # the darkened panorama's gain is the lowest, well below the others' (0.6 of them in truth)
     assert gains[dark] < 0.92 * min(others), gains
     # off: no transform at all
-    assert Trainer(g, views, dataclasses.replace(cfg, appearance=False)).appearance is None
+    assert Trainer(g, views, cfg.with_settings(appearance=False)).appearance is None
 
 
 def test_resume_restores_the_transforms(tiny_room, tmp_path):
@@ -98,7 +98,7 @@ def test_resume_restores_the_transforms(tiny_room, tmp_path):
     assert torch.equal(resumed.appearance.gain, full.appearance.gain)
     assert torch.equal(resumed.appearance.bias, full.appearance.bias)
     with pytest.raises(ValueError):  # a checkpoint with transforms does not resume a run without
-        Trainer(g, views, dataclasses.replace(cfg, appearance=False)).load_checkpoint(ckpt)
+        Trainer(g, views, cfg.with_settings(appearance=False)).load_checkpoint(ckpt)
 
 
 def test_colour_fit_metrics_factor_out_exposure_but_not_structure():

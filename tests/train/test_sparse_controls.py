@@ -56,42 +56,41 @@ def test_projection_defaults():
     for proj, defaults in PROJECTION_DEFAULTS.items():
         p = Params(projection=proj)
         cfg = make_config(p, 4, 2.0)
-        assert cfg.random_background == defaults["random_background"]
-        assert cfg.random_turns == defaults["random_turns"] and cfg.eps2d == defaults["eps2d"]
+        assert cfg.render.random_background == defaults["random_background"]
+        assert cfg.turns.random_turns == defaults["random_turns"] and cfg.render.eps2d == defaults["eps2d"]
         # lr_scale multiplies every learning rate
         for name in ("lr_position_init", "lr_position_final", "lr_sh_dc", "lr_sh_rest", "lr_opacity",
                      "lr_scaling", "lr_rotation"):
-            assert getattr(cfg, name) == pytest.approx(defaults["lr_scale"] * getattr(p, name))
-    assert make_config(Params(lr_scale=1.0), 4, 1.0).lr_opacity == Params().lr_opacity
-    assert make_config(Params(projection="360", random_background=True), 4, 1.0).random_background is True
-    assert make_config(Params(projection="crops", random_background=True), 4, 1.0).random_background is True
+            assert getattr(cfg.optim, name) == pytest.approx(defaults["lr_scale"] * getattr(p, name))
+    assert make_config(Params(lr_scale=1.0), 4, 1.0).optim.lr_opacity == Params().lr_opacity
+    assert make_config(Params(projection="360", random_background=True), 4, 1.0).render.random_background is True
+    assert make_config(Params(projection="crops", random_background=True), 4, 1.0).render.random_background is True
     assert (PROJECTION_DEFAULTS["360"]["random_turns"], PROJECTION_DEFAULTS["360"]["eps2d"]) == (True, 0.05)
     assert (PROJECTION_DEFAULTS["crops"]["random_turns"], PROJECTION_DEFAULTS["crops"]["eps2d"]) == (False, 0.3)
     cfg = make_config(Params(random_turns=False, random_turn_tilt_deg=5, eps2d=0.1, random_turn_interp="bilinear"),
                       4, 1.0)
-    assert (cfg.random_turns, cfg.random_turn_tilt_deg, cfg.eps2d, cfg.random_turn_interp) == (
+    assert (cfg.turns.random_turns, cfg.turns.random_turn_tilt_deg, cfg.render.eps2d, cfg.turns.random_turn_interp) == (
         False, 5, 0.1, "bilinear")
 
 
 def test_every_shared_setting_reaches_the_trainer():
     """make_config passes each setting the stage shares with TrainConfig through (the learning rates
     times lr_scale), and a setting left at its default is the trainer's own default."""
-    import dataclasses
 
-    from gaussians.trainer import TrainConfig
+    from gaussians.config import TrainConfig
     from stages.train import _SCALED_LRS, Params, make_config
 
-    trainer_default = TrainConfig()
+    trainer_default = TrainConfig().flat()
     derived = {"iterations", "densify_from", "densify_until", "opacity_reset_every", "max_gaussians", "eps2d",
                "random_turns", "mip_filter", "random_background", "lambda_layout", "coverage_height", "extent",
                "device"}  # resolved from the preset / projection, or derived by the stage
-    shared = [f.name for f in dataclasses.fields(TrainConfig) if f.name in Params.model_fields]
+    shared = [name for name in TrainConfig.setting_names() if name in Params.model_fields]
     assert len(shared) > 40
     for name in shared:
         if name in derived or Params.model_fields[name].default is None:
             continue
-        assert Params.model_fields[name].default == getattr(trainer_default, name), name
-        value = getattr(trainer_default, name)
+        assert Params.model_fields[name].default == trainer_default[name], name
+        value = trainer_default[name]
         changed = (not value) if isinstance(value, bool) else (
             value if isinstance(value, str) else (tuple(0.5 for _ in value) if isinstance(value, tuple)
                                                   else value * 3 + 1 if isinstance(value, int) else value * 0.5 + 1e-4))
@@ -101,7 +100,7 @@ def test_every_shared_setting_reaches_the_trainer():
             changed = 1
         cfg = make_config(Params(**{name: changed, "lr_scale": 0.25}), 4, 2.0)
         expected = 0.25 * changed if name in _SCALED_LRS else changed
-        assert getattr(cfg, name) == pytest.approx(expected), name
+        assert cfg.flat()[name] == pytest.approx(expected), name
 
 
 def test_crop_resampler_matches_the_baselines_crops_and_passes_gradients():

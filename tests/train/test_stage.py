@@ -204,8 +204,8 @@ def test_mip_filter_is_baked_into_the_exported_model(tiny_room, tmp_path):
                                for v in tv]))
         assert p == pytest.approx(out.final_train_psnr, abs=1e-3)
     assert floor_ok == {False: False, True: True}
-    assert T.make_config(T.Params(), 4, 1.0).mip_filter is False  # off by default
-    assert T.make_config(T.Params(mip_filter=True, mip_filter_variance=0.1), 4, 1.0).mip_filter_variance == 0.1
+    assert T.make_config(T.Params(), 4, 1.0).render.mip_filter is False  # off by default
+    assert T.make_config(T.Params(mip_filter=True, mip_filter_variance=0.1), 4, 1.0).render.mip_filter_variance == 0.1
 
 
 def test_mip_filter_run_resumes_identically(tiny_room, tmp_path, monkeypatch):

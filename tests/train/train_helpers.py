@@ -9,7 +9,8 @@ import numpy as np
 import torch
 
 import splatting
-from gaussians.trainer import TrainConfig, TrainView
+from gaussians.config import TrainConfig
+from gaussians.trainer import TrainView
 from panogeom.images import read_rgb
 from schemas.scene import SceneManifest
 
@@ -50,4 +51,4 @@ def small_config(**kw) -> TrainConfig:
                 opacity_reset_every=0, sh_degree_every=15, max_gaussians=3000, log_every=5,
                 checkpoint_every=0, backend="cpp")
     base.update(kw)
-    return TrainConfig(**base)
+    return TrainConfig.of(**base)
