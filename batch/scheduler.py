@@ -143,7 +143,7 @@ class _SceneJobs:
 
 def _schedule(results: list[SceneResult], jobs: _SceneJobs, executor: Executor, board: Board) -> None:
     """Submit each job once its inputs are done, until every job has an outcome."""
-    from pipeline.console import console as stage_console
+    from runtime.console import console as stage_console
 
     state: dict[tuple[int, str], str] = {}
     for i, r in enumerate(results):

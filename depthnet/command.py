@@ -22,7 +22,7 @@ def export_depth_model_command(
     """Rebuild Depth Anything V2, load a checkpoint strictly, export to ONNX (dynamic size), check it
     against torch."""
     from depthnet.depth_anything import MAX_DIFF, export_onnx
-    from pipeline.console import console
+    from runtime.console import console
 
     t0 = time.perf_counter()
     if checkpoint.is_file():  # a missing file is reported by export_onnx, as one line

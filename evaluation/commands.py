@@ -11,7 +11,7 @@ import typer
 
 from rich.markup import escape
 
-from pipeline.console import console
+from runtime.console import console
 from pipeline.options import ConfigOpt, OutOpt, SceneArg, SetOpt
 from runfs.errors import PanoError
 from runfs.paths import run_path
@@ -164,7 +164,7 @@ def render_command(
         walk_poses,
     )
     from evaluation.model_io import equirect_camera, load_model, pinhole_camera
-    from pipeline.console import track
+    from runtime.console import track
     from pipeline.engine import load_artifact
     from schemas.train import TrainOutput
 

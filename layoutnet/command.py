@@ -18,7 +18,7 @@ def export_layout_model_command(
 ) -> float:
     """Rebuild HorizonNet, load a checkpoint, export to ONNX (512x1024, batch 1), check it against torch."""
     from layoutnet.export import MAX_DIFF, export_checkpoint
-    from pipeline.console import console
+    from runtime.console import console
 
     t0 = time.perf_counter()
     diff = export_checkpoint(checkpoint, out, opset=opset)

@@ -19,7 +19,7 @@ def list_command() -> None:
 
     from models.registry import known_models
     from models.store import cache_dir, checkpoint_path, checkpoint_problem, onnx_path, onnx_problem, read_record
-    from pipeline.console import console
+    from runtime.console import console
 
     console.print(escape(f"model cache: {cache_dir()}"), soft_wrap=True)
     for entry in known_models().values():
@@ -53,7 +53,7 @@ def fetch_command(
     from rich.markup import escape
 
     from models.download import fetch
-    from pipeline.console import console
+    from runtime.console import console
 
     fetch(name, force=force, log=lambda m: console.print(escape(m), soft_wrap=True))
 

@@ -192,7 +192,7 @@ def ensure_onnx(entry: KnownModel) -> Path:
             raise PanoError(onnx, f"{onnx_problem(entry)}; run `pano-pipe models fetch {entry.name}` to replace it")
         raise PanoError(ckpt, missing_message(entry))
     digest = verify(entry, ckpt)
-    from pipeline.console import console
+    from runtime.console import console
 
     console.print(f"exporting {entry.name} to ONNX (once; kept at {onnx})", soft_wrap=True)
     export(ckpt, onnx, entry.exporter)
@@ -215,7 +215,7 @@ def _export_user_checkpoint(path: Path, kind: str) -> Path:
     """A user's own checkpoint, exported once into the cache under its content hash."""
     out = cache_dir() / "exported" / f"{kind}-{sha256_file(path)[:16]}.onnx"
     if not out.is_file():
-        from pipeline.console import console
+        from runtime.console import console
 
         console.print(f"exporting {path} to ONNX (once; kept at {out})", soft_wrap=True)
         export(path, out, DEFAULT_EXPORTERS[kind])

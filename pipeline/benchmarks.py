@@ -10,7 +10,7 @@ from pathlib import Path
 
 from rich.markup import escape
 
-from pipeline.console import console
+from runtime.console import console
 from runfs.fsutil import atomic_write_text
 
 

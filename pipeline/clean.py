@@ -17,7 +17,7 @@ from typing import Annotated, Optional
 import typer
 from rich.markup import escape
 
-from pipeline.console import console
+from runtime.console import console
 from runfs.errors import PanoError
 
 

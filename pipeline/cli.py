@@ -29,7 +29,7 @@ from rich.text import Text
 
 from rich.markup import escape
 
-from pipeline.console import console, err_console
+from runtime.console import console, err_console
 from pipeline.bench_commands import bench_app
 from pipeline.options import ConfigOpt, OutOpt, SceneArg, SetOpt
 from runfs.errors import PanoError, did_you_mean, one_line

@@ -22,11 +22,11 @@ from pydantic import BaseModel, ValidationError
 
 from rich.markup import escape
 
-from pipeline.console import console, track
+from runtime.console import console, track
 from runfs.errors import PanoError, describe_validation_error, did_you_mean, read_json
 from runfs.fsutil import append_line, atomic_folder, remove_stale_temporaries, run_folder_lock, sha256_file, sha256_json
 from runfs.paths import check_run_folder, mark_run_folder, run_path
-from pipeline.stage import Loaded, StageContext, StageSpec
+from runtime.stage import Loaded, StageContext, StageSpec
 from schemas.artifact import Artifact, ArtifactMeta
 from schemas.scene import Scene
 

@@ -17,7 +17,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from pipeline.console import console
+from runtime.console import console
 from runfs.errors import PanoError
 from schemas.scene import REAL_CAPTURE_NADIR_DEG
 

@@ -84,7 +84,7 @@ def simulate_command(
     """Write a synthetic indoor scene folder with exact ground truth (depth, layout, floor plan)."""
     from rich.markup import escape
 
-    from pipeline.console import console
+    from runtime.console import console
 
     result = generate_scene(
         Path(out),

@@ -35,7 +35,7 @@ from panogeom.surfaces import CEILING, FLOOR, NONE, SURFACE_NAMES, WALL
 from runfs.errors import PanoError
 from runfs.limits import load_npy
 from schemas.scene_loader import valid_mask
-from pipeline.stage import StageContext
+from runtime.stage import StageContext
 from schemas.align import AlignOutput, KindFit
 from schemas.depth import DEPTH_MODELS
 from schemas.scene import Scene

@@ -30,7 +30,7 @@ from pydantic import Field
 from models.store import fetch_hint, model_label
 from runfs.errors import PanoError
 from runfs.limits import load_npy, read_image
-from pipeline.stage import StageContext
+from runtime.stage import StageContext
 from schemas.depth import DepthOutput, ViewDepth
 from schemas.scene import Scene, View
 from schemas.stage_params import StageParams

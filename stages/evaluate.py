@@ -29,7 +29,7 @@ from panogeom.images import read_rgb, write_rgb
 from runfs.errors import PanoError
 from runfs.limits import load_npy, read_image
 from schemas.scene_loader import valid_mask
-from pipeline.stage import Loaded, StageContext
+from runtime.stage import Loaded, StageContext
 from schemas.evaluate import EvaluateOutput, ViewMetrics
 from schemas.scene import Scene, View
 from schemas.stage_params import NAMES_FILE, StageParams

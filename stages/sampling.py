@@ -24,7 +24,7 @@ from panogeom.equirect import angles_to_pixel, dirs_to_angles
 from panogeom.images import read_rgb
 from panogeom.surfaces import CEILING, FLOOR, SURFACE_NAMES, WALL
 from runfs.errors import PanoError
-from pipeline.stage import StageContext
+from runtime.stage import StageContext
 from schemas.sampling import SamplingOutput
 from schemas.scene import Scene
 from schemas.stage_params import StageParams

@@ -33,7 +33,7 @@ from panogeom.equirect import angles_to_pixel, dirs_to_angles
 from panogeom.images import read_rgb
 from runfs.errors import PanoError, one_line
 from schemas.scene_loader import valid_mask
-from pipeline.stage import StageContext
+from runtime.stage import StageContext
 from schemas.scene import Scene, View
 from schemas.stage_params import StageParams
 from schemas.train import CropRig, TrainOutput
@@ -489,7 +489,7 @@ class _DeferredInterrupt:
 def run(ctx: StageContext) -> TrainOutput:
     from rich.progress import TextColumn
 
-    from pipeline.console import KEEP_FIELD, RecentRate, console, make_progress
+    from runtime.console import KEEP_FIELD, RecentRate, console, make_progress
 
     p: Params = ctx.params
     if p.threads:
@@ -618,7 +618,7 @@ def build_kernel_first(backend: str | None, device: str) -> float | None:
     """Load the C++ CPU kernel before training, building it if this machine has no build yet, so
     that its one-time build is a step of its own, not training time (the report's seconds, the
     progress bar's rate); returns the build's seconds, None when nothing was built."""
-    from pipeline.console import console
+    from runtime.console import console
 
     if device != "cpu" or backend not in (None, "cpp"):
         return None

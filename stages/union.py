@@ -22,7 +22,7 @@ from shapely.geometry.polygon import orient
 from shapely.ops import unary_union
 
 from runfs.errors import PanoError
-from pipeline.stage import StageContext
+from runtime.stage import StageContext
 from schemas.layout import LayoutOutput, ViewLayout
 from schemas.scene import Scene
 from schemas.stage_params import StageParams

@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 from rich.markup import escape
 
-from pipeline.console import console
+from runtime.console import console
 from pipeline.signals import Terminated
 
 from pipeline.options import OutOpt

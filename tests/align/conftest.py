@@ -16,7 +16,7 @@ import shapely
 from shapely.geometry import Point, Polygon
 
 from schemas.scene_loader import load_scene
-from pipeline.stage import Loaded, StageContext
+from runtime.stage import Loaded, StageContext
 from schemas.depth import DepthOutput, ViewDepth
 from schemas.layout import LayoutOutput, ViewLayout
 from schemas.sampling import SamplingOutput

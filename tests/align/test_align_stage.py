@@ -113,7 +113,7 @@ def test_affine_view_without_a_layout_is_left_out_with_a_warning(kit, empty_room
     assert dropped  # the room has several train views
     layout.data.views = layout.data.views[:1]
     sampling = kit.sampling_from_gt(sim, tmp_path / "sampling", spacing=0.05)
-    from pipeline.stage import StageContext
+    from runtime.stage import StageContext
     from stages import align
 
     folder = tmp_path / "align-out"
@@ -180,7 +180,7 @@ def test_registry_pipeline_up_to_align_with_scaled_files(tmp_path):
 
 
 def test_rescaling_metric_depth_to_an_assumed_camera_height_warns(kit, empty_room, tmp_path):
-    from pipeline.stage import StageContext
+    from runtime.stage import StageContext
     from stages import align
 
     sim = empty_room

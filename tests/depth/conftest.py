@@ -20,7 +20,7 @@ import pytest
 import torch
 
 from schemas.scene_loader import load_scene
-from pipeline.stage import StageContext
+from runtime.stage import StageContext
 from simulate import generate_scene
 
 DMAX = 10.0
@@ -188,7 +188,7 @@ def dk():
 
 def run_chain(scene, tmp: Path, depth_params: dict, align_params: dict | None = None, with_layout=True):
     """depth (stage) -> exact layout (simulator) -> union -> sampling -> align, in folders under tmp."""
-    from pipeline.stage import Loaded
+    from runtime.stage import Loaded
     from schemas.layout import LayoutOutput, ViewLayout
     from stages import align, sampling, union
 

@@ -86,7 +86,7 @@ def write_train_artifact(run_dir: Path, g, resolution=(32, 64), log_records=None
 def run_evaluate(scene, run_dir: Path, write_artifact: bool = True, **params):
     """Run the evaluate stage on `run_dir`/train; optionally write its artifact.json as the engine would."""
     from pipeline.engine import load_artifact
-    from pipeline.stage import StageContext
+    from runtime.stage import StageContext
     from schemas.artifact import Artifact, ArtifactMeta
     from schemas.evaluate import EvaluateOutput
     from schemas.train import TrainOutput

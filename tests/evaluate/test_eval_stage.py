@@ -9,7 +9,7 @@ import pytest
 
 from evalhelpers import backprojected_gaussians, make_scene, write_train_artifact
 from pipeline.engine import load_artifact
-from pipeline.stage import StageContext
+from runtime.stage import StageContext
 from schemas.train import TrainOutput
 from stages import evaluate
 

@@ -90,7 +90,7 @@ def json_corners_xz(data: dict, width: int, height: int, camera_height: float) -
 def run_layout(scene_root, out_dir, **params):
     """Run the layout stage's `run` on a scene folder; returns (output, warnings)."""
     from schemas.scene_loader import load_scene
-    from pipeline.stage import StageContext
+    from runtime.stage import StageContext
     from stages import layout
 
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -11,7 +11,7 @@ import pytest
 
 from pipeline import cli
 from tests.clitools import invoke, run_main, without_kernel_notices
-from pipeline.console import PlainProgress
+from runtime.console import PlainProgress
 from simulate.generate import generate_scene
 
 FAST = ["--set", "train.iterations=5", "--set", "train.height=8", "--set", "evaluate.fps_repeats=1"]

@@ -10,11 +10,11 @@ from pathlib import Path
 import pytest
 from pydantic import BaseModel
 
-from pipeline import code_closure
-from pipeline.code_closure import SOURCE_ROOT, code_version, import_closure
+from runtime import code_closure
+from runtime.code_closure import SOURCE_ROOT, code_version, import_closure
 from pipeline.engine import Engine
 from pipeline.registry import build_registry
-from pipeline.stage import StageSpec
+from runtime.stage import StageSpec
 from schemas.scene_loader import load_scene
 
 PACKAGES = ("panogeom", "gaussians", "splatting", "stages", "pipeline", "schemas", "runfs", "evaluation", "sfm",

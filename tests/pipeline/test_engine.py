@@ -11,7 +11,7 @@ from pydantic import BaseModel, ConfigDict
 
 from pipeline.engine import Engine, ancestors, topological_order
 from schemas.scene_loader import load_scene
-from pipeline.stage import StageContext, StageSpec
+from runtime.stage import StageContext, StageSpec
 
 CALLS: Counter[str] = Counter()
 

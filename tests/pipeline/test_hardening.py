@@ -322,7 +322,7 @@ def test_model_files_enter_the_key_by_content_and_resolve_from_the_scene(work, c
 
     from pipeline.engine import Engine
     from schemas.scene_loader import load_scene
-    from pipeline.stage import StageSpec
+    from runtime.stage import StageSpec
 
     class Params(BaseModel):
         model: Path | None = None

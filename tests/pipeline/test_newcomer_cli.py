@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import console as console_module
-from pipeline.console import PlainProgress
+from runtime import console as console_module
+from runtime.console import PlainProgress
 from pipeline.registry import build_registry
 from simulate.generate import generate_scene
 from tests.clitools import invoke

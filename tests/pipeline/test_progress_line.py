@@ -9,7 +9,7 @@ import pytest
 from rich.console import Console
 from rich.progress import TextColumn
 
-import pipeline.console as pc
+import runtime.console as pc
 
 
 def test_the_rate_is_the_recent_one():

@@ -9,7 +9,7 @@ import json
 import numpy as np
 
 from pipeline.registry import build_registry
-from pipeline.stage import Loaded
+from runtime.stage import Loaded
 from schemas.poses import PosesOutput, ViewPose
 from schemas.scene_loader import load_scene
 from sfm.frame import align_to_floor

@@ -12,7 +12,7 @@ from shapely.geometry import LineString, Polygon
 
 from runfs.errors import PanoError
 from schemas.scene_loader import load_scene
-from pipeline.stage import Loaded, StageContext
+from runtime.stage import Loaded, StageContext
 from schemas.layout import LayoutOutput
 from schemas.union import Room
 from stages import sampling as S

@@ -24,7 +24,7 @@ from gaussians.init import random_points
 from gaussians.trainer import Trainer
 from runfs.errors import PanoError
 from schemas.scene_loader import load_scene
-from pipeline.stage import StageContext
+from runtime.stage import StageContext
 
 BIN = Path(sys.executable).parent
 

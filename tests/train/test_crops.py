@@ -16,7 +16,7 @@ from gaussians.densify import gradient_scale
 from gaussians.losses import l1_loss
 from runfs.errors import PanoError
 from schemas.scene_loader import load_scene
-from pipeline.stage import Loaded, StageContext
+from runtime.stage import Loaded, StageContext
 from test_stage import ctx_for
 
 

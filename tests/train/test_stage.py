@@ -15,7 +15,7 @@ import stages.train as T
 from gaussians import load_ply
 from runfs.errors import PanoError
 from schemas.scene_loader import load_scene
-from pipeline.stage import Loaded, StageContext
+from runtime.stage import Loaded, StageContext
 from schemas.sampling import SamplingOutput
 from schemas.train import TrainOutput
 from schemas.union import Room, UnionOutput

@@ -12,7 +12,7 @@ from shapely.ops import unary_union
 
 from runfs.errors import PanoError
 from schemas.scene_loader import load_scene
-from pipeline.stage import Loaded, StageContext
+from runtime.stage import Loaded, StageContext
 from schemas.layout import LayoutOutput, ViewLayout
 from stages import union as U
 

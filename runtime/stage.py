@@ -59,8 +59,8 @@ class StageSpec:
     resources: Callable[[BaseModel], dict[str, float]] = field(default=lambda params: {"CPU": 1.0})
 
     def code_version(self) -> str:
-        """The hash of the repository sources the stage's module imports (pipeline/code_closure.py)."""
-        from pipeline.code_closure import code_version
+        """The hash of the repository sources the stage's module imports (runtime/code_closure.py)."""
+        from runtime.code_closure import code_version
 
         return code_version(self.run.__module__)
 
@@ -100,7 +100,7 @@ class StageContext(Generic[P]):
     def warn(self, message: str) -> None:
         from rich.markup import escape
 
-        from pipeline.console import console
+        from runtime.console import console
 
         console.print(f"[yellow]warning:[/] {escape(message)}")
         self.warnings.append(message)
