@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 import typer
 from rich.markup import escape
 
-from pipeline.console import console
+from runtime.console import console
 from pipeline.options import ConfigOpt, SetOpt
 from pipeline.settings import load_config
 from runfs.errors import PanoError
@@ -120,8 +120,8 @@ def bench_pipeline_command(
 @bench_app.command("poses")
 def bench_poses_command(
     scenes: Annotated[str, typer.Option(
-        help="Comma-separated simulated captures: N (N views over three rooms) or chainN (N views along a "
-             "walk).")] = "8,13,chain8",
+        help="Comma-separated simulated captures: N (N views over three rooms), chainN (N views along a "
+             "walk), plainN / plainchainN (the same with a plain floor).")] = "8,13,chain8",
     methods: Annotated[str, typer.Option(help="Comma-separated poses.method values to compare.")]
     = "auto,equirect,rig,upright",
     height: Annotated[int, typer.Option(min=64, help="Panorama height (width = 2 x height).")] = 512,

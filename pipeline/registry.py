@@ -3,7 +3,7 @@
 Each entry names the stage's inputs (upstream artifacts; True = required),
 the scene files it reads (only those enter its cache key) and when a scene
 does not call for it; its code version is the import closure of its module
-(pipeline/code_closure.py).
+(runtime/code_closure.py).
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from functools import cache
 
 from pydantic import BaseModel
 
-from pipeline.stage import StageSpec
+from runtime.stage import StageSpec
 from schemas.scene import Scene, View
 
 
@@ -43,6 +43,8 @@ def build_registry() -> dict[str, StageSpec]:
             # poses: the camera heights it recovers complete the views scene.json gives none
             inputs={"poses": False}, scene_inputs=("images", "layout"), skip_reason=layout.skip_reason, run_reason=layout.run_reason,
             resolve_params=layout.resolve_params, hint=layout.hint,
+            # poses kept up to scale (poses scale_source none) are made metric by the rooms
+            completes_scene=layout.complete_scene,
             description="room layout per view (supplied boundaries, or a HorizonNet model on the aligned panorama)",
         ),
         StageSpec(

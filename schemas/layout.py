@@ -58,8 +58,23 @@ class ViewLayout(BaseModel):
     )
 
 
+class PoseRescale(BaseModel):
+    """The metric scale the layout stage measured for poses the poses stage left without one
+    (its scale_source none): the later stages see those poses' positions scaled by it."""
+
+    scale: float = Field(gt=0, description="Metres per unit of the poses (layoutnet.pose_scale).")
+    uncertainty: float = Field(ge=0, description="Its relative standard uncertainty.")
+    anchor: list[float] = Field(description="The point the positions are scaled about (world): the given "
+                                            "view's centre, else the origin (the first view).")
+    views: list[str] = Field(description="The views whose recovered poses are scaled.")
+    votes: int = Field(description="Sparse points whose wall-distance ratio agrees with the scale.")
+    points: int = Field(description="Sparse points that voted.")
+
+
 class LayoutOutput(BaseModel):
     views: list[ViewLayout]
+    poses_rescale: PoseRescale | None = Field(
+        default=None, description="Set when the poses had no metric scale and the rooms measured it.")
     model: str | None = Field(default=None, description="The ONNX model used, if any.")
     model_name: str | None = Field(
         default=None, description="The known model (pano-pipe models list) that file is, if it is one.")

@@ -74,15 +74,35 @@ class PosesOutput(BaseModel):
     upright_pair: UprightPairReport | None = Field(default=None, description="The upright-pair solver's figures.")
     working_height: int = Field(description="Panorama height (pixels) features were extracted at.")
     views: list[ViewPose]
-    frame: Literal["floor", "known poses", "known pose and floor"] = Field(
-        description="What fixed the world frame: the floor and camera heights, or views with given poses.")
-    scale: float = Field(description="Metres per SfM unit.")
-    scale_uncertainty: float = Field(description="Relative standard uncertainty of the scale (0.01 = 1 %).")
+    frame: Literal["floor", "known poses", "known pose and floor", "known pose", "gravity"] = Field(
+        description="What fixed the world frame: the floor and camera heights, views with given poses (one "
+                    "given view: its pose, and the floor for the scale), or only the cameras' gravity and the "
+                    "first view (no metric scale: 'gravity', or 'known pose' with one given view).")
+    scale_source: Literal["floor_plane", "floor_wall_boundary", "known_poses", "none"] = Field(
+        default="floor_plane",
+        description="Where the metric scale came from: a plane fitted to the sparse points under the cameras "
+                    "(floor_plane), the floor level at which the floor–wall boundaries show in the panoramas "
+                    "(floor_wall_boundary; a plain floor gives SfM no point), the views with given poses "
+                    "(known_poses), or nothing (none: the poses are kept up to scale, in the SfM frame's unit; "
+                    "docs/poses.md).")
+    scale: float = Field(description="Metres per SfM unit (1 when scale_source is none: the SfM frame's unit).")
+    scale_uncertainty: float | None = Field(
+        description="Relative standard uncertainty of the scale (0.01 = 1 %); None when there is no scale.")
     floor_tilt_deg: float | None = Field(
         default=None, description="Angle between the fitted floor's normal and gravity (the cameras' mean down axis).")
     points: int = Field(description="Sparse points.")
     mean_track_length: float = Field(description="Mean number of panoramas observing a sparse point.")
     verified_pairs: int = Field(description="Pairs of panoramas with geometrically verified matches.")
     sparse_points: str = Field(description="points.ply: the sparse points in the world frame (metres), coloured.")
+    observations: str | None = Field(
+        default=None, description="observations.npz: the sparse points (world frame) and which view observes "
+                                  "which (stages.poses.read_observations).")
     drawing: str = Field(description="cameras.png: cameras over the sparse points, seen from above.")
     timings_s: dict[str, float] = Field(default_factory=dict)
+
+    def scale_text(self) -> str:
+        """The scale in words, for the summary line and the report."""
+        if self.scale_source == "none" or self.scale_uncertainty is None:
+            return "no metric scale (scale_source none: the poses are up to scale)"
+        return (f"scale {self.scale:.4g} m/unit ± {100 * self.scale_uncertainty:.2g} % "
+                f"(scale_source {self.scale_source})")

@@ -195,6 +195,21 @@ class Scene(BaseModel):
         manifest = self.manifest.model_copy(update={"views": [v for v in views if v.pose is not None]})
         return Scene(root=self.root, manifest=manifest)
 
+    def with_scaled_positions(self, views: list[str], scale: float, anchor: list[float]) -> Scene:
+        """This scene with the camera positions of `views` moved `scale` times as far from `anchor`:
+        poses recovered up to scale, made metric by a later stage (stages/layout.py)."""
+        names, centre = set(views), np.asarray(anchor, dtype=np.float64)
+
+        def scaled(v):
+            if v.name not in names or v.pose is None:
+                return v
+            pose = np.array(v.pose, dtype=np.float64)
+            pose[:3, 3] = centre + scale * (pose[:3, 3] - centre)
+            return v.model_copy(update={"pose": pose.tolist()})
+
+        manifest = self.manifest.model_copy(update={"views": [scaled(v) for v in self.manifest.views]})
+        return Scene(root=self.root, manifest=manifest)
+
     def image_path(self, view: View) -> Path:
         return self.path(view.image, f"view {view.name!r} image")
 

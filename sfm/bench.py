@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 from rich.markup import escape
 
-from pipeline.console import console
+from runtime.console import console
 from runfs.fsutil import atomic_write_text
 from sfm.frame import nearest_rotation, rotation_angle_deg
 
@@ -40,25 +40,33 @@ class BenchScene:
     label: str
     views: int
     walk: bool = False
+    #: the simulator's `plain-floor` effect: a floor structure from motion finds (almost) no point on
+    plain_floor: bool = False
 
     @staticmethod
     def parse(text: str) -> BenchScene:
-        """'8' (8 views spread over the rooms) or 'chain8' (8 views along a walk)."""
-        walk = text.startswith("chain")
-        count = text.removeprefix("chain")
+        """'8' (8 views spread over the rooms), 'chain8' (8 views along a walk), 'plain13' or
+        'plainchain8' (the same with a plain floor: no texture, no detail)."""
+        plain = text.startswith("plain")
+        rest = text.removeprefix("plain")
+        walk = rest.startswith("chain")
+        count = rest.removeprefix("chain")
         if not count.isdigit() or not 2 <= int(count) <= 64:
-            raise ValueError(f"scene {text!r}: a view count 2..64, or chainN")
-        return BenchScene(text, int(count), walk)
+            raise ValueError(f"scene {text!r}: a view count 2..64, chainN, plainN or plainchainN")
+        return BenchScene(text, int(count), walk, plain)
 
 
-def simulate_capture(out: Path, views: int, height: int, seed: int = 0, walk: bool = False) -> dict[str, np.ndarray]:
-    """Write an unposed simulated capture (suite preset) at `out`; return the true camera-to-world poses."""
+def simulate_capture(out: Path, views: int, height: int, seed: int = 0, walk: bool = False,
+                     plain_floor: bool = False) -> dict[str, np.ndarray]:
+    """Write an unposed simulated capture (suite preset) at `out`; return the true camera-to-world poses.
+    `plain_floor`: the floor without texture or detail (the simulator's `plain-floor` effect)."""
     import simulate
 
     with tempfile.TemporaryDirectory(prefix="pano-sim-") as tmp:
         sim = Path(tmp) / "sim"
         simulate.generate_scene(sim, preset="suite", views=views, test_views=0, height=height, seed=seed,
-                                effects=SCENE_EFFECTS, walk=walk, tripod_height=TRIPOD_HEIGHT)
+                                effects=SCENE_EFFECTS + (",plain-floor" if plain_floor else ""), walk=walk,
+                                tripod_height=TRIPOD_HEIGHT)
         truth = unposed_copy(sim, out)
     manifest = json.loads((out / "scene.json").read_text())
     manifest["nadir_mask_deg"] = NADIR_MASK_DEG
@@ -107,7 +115,7 @@ def bench_poses(scenes: list[BenchScene], methods: list[str], height: int, seed:
     with tempfile.TemporaryDirectory(prefix="pano-bench-poses-") as tmp:
         for bench in scenes:
             scene_dir = Path(tmp) / f"scene-{bench.label}"
-            truth = simulate_capture(scene_dir, bench.views, height, seed, bench.walk)
+            truth = simulate_capture(scene_dir, bench.views, height, seed, bench.walk, bench.plain_floor)
             for method in methods:
                 config = {"poses": {"method": method, "working_height": height, "threads": threads}}
                 run_dir = Path(tmp) / f"run-{bench.label}-{method}"

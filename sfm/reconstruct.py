@@ -183,11 +183,17 @@ class _Feed(ABC):
                 obs[view] = obs.get(view, 0) + len(xyz)
         names = {img.image_id: self.view_of(img.name) for img in model.images.values()}
         pts = list(model.points3D.values())
+        seen: dict[str, set[int]] = {}
+        for k, p in enumerate(pts):
+            for e in p.track.elements:
+                seen.setdefault(names[e.image_id], set()).add(k)
         points = np.array([p.xyz for p in pts]).reshape(-1, 3)
         colors = np.array([p.color for p in pts], dtype=np.uint8).reshape(-1, 3)
         tracks = np.array([len({names[e.image_id] for e in p.track.elements}) for p in pts], dtype=int)
         errors = {v: err_sum.get(v, 0.0) / max(obs.get(v, 0), 1) for v in poses}
-        return Reconstruction(poses, errors, {v: obs.get(v, 0) for v in poses}, points, colors, tracks, 0)
+        seen_by = {v: np.array(sorted(seen.get(v, ())), int) for v in poses}
+        return Reconstruction(poses, errors, {v: obs.get(v, 0) for v in poses}, points, colors, tracks, 0,
+                              seen_by=seen_by)
 
 
 class _EquirectFeed(_Feed):

@@ -54,6 +54,9 @@ class Reconstruction:
     verified_pairs: int
     models: int = 1
     timings: dict[str, float] = field(default_factory=dict)
+    #: view name -> indices of the points it observes; empty when not recorded (then every
+    #: registered view is taken to see every point, as for a two-view solve)
+    seen_by: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 #: The steps `reconstruct` reports to its `progress` callback as each one ends.

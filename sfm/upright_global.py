@@ -707,6 +707,7 @@ def solve(panoramas: Sequence[Panorama], options: UprightGlobalOptions | None = 
     for k in first:
         colors[tracks.point[k]] = bearing_color(panoramas[tracks.view[k]], tracks.bearing[k])
     track_length = np.bincount(tracks.point, minlength=tracks.count)
+    seen_by = {names[v]: np.unique(tracks.point[tracks.view == v]) for v in placed}
     recon = Reconstruction(cam_from_world, reproj, observations, points, colors, track_length,
-                           sum(r[3] for r in pairs_report), 1, timings)
+                           sum(r[3] for r in pairs_report), 1, timings, seen_by)
     return GlobalResult(recon, pairs_report, left_out, len(candidates), median_error)

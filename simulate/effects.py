@@ -24,10 +24,10 @@ from shapely.prepared import prep
 from panogeom.equirect import column_longitudes, row_latitudes
 from simulate.geometry import FURNITURE_CAMERA_CLEARANCE, Box, Camera, World
 
-EFFECTS = ("texture", "furniture", "shading", "noise", "exposure", "tripod", "aa", "detail")
+EFFECTS = ("texture", "furniture", "shading", "noise", "exposure", "tripod", "aa", "detail", "plain-floor")
 #: Effects that `all` leaves out: they change what every existing scene looks like, so a scene
 #: gets them only by naming them.
-OPT_IN_EFFECTS = frozenset({"detail"})
+OPT_IN_EFFECTS = frozenset({"detail", "plain-floor"})
 
 # Mean albedo of each material: also the flat colour used when `texture` is off.
 MATERIAL_RGB = {
@@ -145,6 +145,14 @@ def detail(surface: np.ndarray, uv: np.ndarray, albedo: np.ndarray) -> np.ndarra
     noise = sum(_value_noise(u, v, cell, seed + 101 * k) for k, cell in enumerate(DETAIL_CELLS_M))
     gain = 0.45 + 1.1 * _smoothstep(0.6, 2.4, noise)  # contrast stretched: dark and light blotches
     return np.clip(albedo * gain[:, None].astype(albedo.dtype), 0.0, 1.0)
+
+
+def plain_floor(world: World) -> None:
+    """A floor with few features, as a plain wooden or carpeted floor without rugs is: its
+    material's flat colour (wood or carpet), neither `texture`'s planks or squares nor `detail`'s
+    blotches; shading and sensor noise still reach it. Structure from motion then finds (almost)
+    no point on the floor, only on the walls, the furniture and the ceiling."""
+    world.floor_plain = True
 
 
 # ----------------------------------------------------------------------------- shading

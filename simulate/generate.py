@@ -254,6 +254,8 @@ def generate_scene(
         boxes = fxmod.furniture(world, cams, rngs["furniture"])
         timings["furniture"] = time.perf_counter() - t0
     world.boxes = boxes
+    if "plain-floor" in fx:
+        fxmod.plain_floor(world)
 
     with atomic_folder(out_dir) as tmp:
         (tmp / SIMULATED_MARKER).write_text(f"preset={preset} seed={seed}\n")

@@ -120,6 +120,8 @@ class World:
     floor_material: str
     outline: np.ndarray  # [K,2] CCW union of the rooms
     boxes: list[Box] = field(default_factory=list)
+    #: the `plain-floor` effect: the floor keeps its material's flat colour, untextured, without detail
+    floor_plain: bool = False
     # Convex parts of the free space where cameras may stand, one list per room.
     camera_regions: list[list[tuple[float, float, float, float]]] = field(default_factory=list)
 

@@ -53,6 +53,8 @@ class _Materials:
             coef[3 * s, 0, 0] = 1.0  # u = x
             coef[3 * s, 1, 2] = 1.0  # v = z
         bare = np.zeros(nsurf, bool)
+        if world.floor_plain:  # the `plain-floor` effect: no texture, no detail on the floor
+            kind[FLOOR], bare[FLOOR] = kinds.index("plain"), True
         off = 0.0  # running arc length keeps the pattern continuous around corners
         for k, wall in enumerate(world.walls):
             s = WALL0 + k

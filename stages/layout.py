@@ -30,8 +30,8 @@ from layoutnet.formats import SuppliedLayout, read_layout
 from models.store import fetch_hint, model_label
 from runfs.errors import PanoError
 from runfs.limits import read_image
-from pipeline.stage import StageContext
-from schemas.layout import LayoutAlignment, LayoutOutput, ViewLayout
+from runtime.stage import Loaded, StageContext
+from schemas.layout import LayoutAlignment, LayoutOutput, PoseRescale, ViewLayout
 from schemas.scene import MAX_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT, Scene, View
 from schemas.stage_params import StageParams
 
@@ -324,4 +324,40 @@ def run(ctx: StageContext[Params]) -> LayoutOutput:
     from models.store import known_name
 
     return LayoutOutput(views=out, model=str(model_path) if model_path else None,
-                        model_name=known_name(model_path) if model_path else None)
+                        model_name=known_name(model_path) if model_path else None,
+                        poses_rescale=_rescale_poses(ctx, out))
+
+
+def _rescale_poses(ctx: StageContext[Params], rooms: list[ViewLayout]) -> PoseRescale | None:
+    """Poses the poses stage kept up to scale (scale_source none): their metres per unit, measured
+    from the rooms' walls and the sparse points the views observe (layoutnet.pose_scale), for the
+    later stages (complete_scene). Says what it did in one warning either way."""
+    from layoutnet.pose_scale import scale_from_rooms
+    from stages.poses import read_observations
+
+    poses = ctx.input("poses")
+    if poses is None or poses.data.scale_source != "none":
+        return None
+    data = poses.data
+    seen = read_observations(poses.path(data.observations))[1] if data.observations else {}
+    by_name = {v.name: v for v in ctx.scene.views}
+    found = scale_from_rooms([(np.asarray(by_name[r.view].pose), np.asarray(r.floor_polygon), seen[r.view])
+                              for r in rooms if r.view in seen and by_name[r.view].pose is not None])
+    if found is None:
+        ctx.warn("the poses have no metric scale (poses: scale_source none) and the rooms could not measure it: "
+                 "the rooms are metric, the poses that place them are not")
+        return None
+    given = [v for v in data.views if v.given and v.pose is not None]
+    anchor = np.asarray(given[0].pose)[:3, 3].tolist() if given else [0.0, 0.0, 0.0]
+    views = [v.view for v in data.views if v.registered and not v.given]
+    ctx.warn(f"the poses have no metric scale (poses: scale_source none): {found.scale:.4g} m per unit "
+             f"± {100 * found.uncertainty:.2g} % measured from the rooms' walls ({found.votes} of {found.points} "
+             "sparse points agree); the later stages see the poses scaled by it")
+    return PoseRescale(scale=found.scale, uncertainty=found.uncertainty, anchor=anchor, views=views,
+                       votes=found.votes, points=found.points)
+
+
+def complete_scene(scene: Scene, artifact: Loaded) -> Scene:
+    """The scene with the poses the layout stage made metric (LayoutOutput.poses_rescale) scaled."""
+    fix = artifact.data.poses_rescale
+    return scene if fix is None else scene.with_scaled_positions(fix.views, fix.scale, fix.anchor)

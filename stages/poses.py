@@ -25,15 +25,16 @@ import numpy as np
 from pydantic import Field
 
 from panogeom.images import read_rgb
-from pipeline.console import make_progress
+from runtime.console import make_progress
 from runfs.errors import PanoError
 from runfs.limits import image_size
 from schemas.scene_loader import valid_mask
-from pipeline.stage import Loaded, StageContext
+from runtime.stage import Loaded, StageContext
 from schemas.poses import Attempt, PairRecord, PosesOutput, UprightPairReport, ViewPose
 from schemas.scene import MAX_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT, Scene
 from schemas.stage_params import StageParams
-from sfm.frame import Alignment, align_to_floor, align_to_known
+from sfm.floor_boundary import floor_cue
+from sfm.frame import FLOOR_WALL_BOUNDARY, NO_SCALE, Alignment, align_to_floor, align_to_known
 from sfm.records import STEPS as SFM_STEPS
 from sfm.records import Panorama, Reconstruction, SfmOptions
 from sfm.upright_global import GlobalResult, UprightGlobalOptions
@@ -44,6 +45,9 @@ from stages.cloud_io import write_ply
 Output = PosesOutput
 
 PLY_NAME = "points.ply"
+#: The sparse points (world frame) and which view observes which: what a later stage needs to
+#: measure the scale the poses stage could not (the layout stage, stages/layout.py).
+OBSERVATIONS_NAME = "observations.npz"
 DRAWING_NAME = "cameras.png"
 
 
@@ -160,7 +164,7 @@ def run(ctx: StageContext) -> PosesOutput:
         solved = _solve(method, loaded[height], p, height)
         if solved.failure is None:
             try:
-                solved.alignment = _align(ctx, solved.result, p, method)
+                solved.alignment = _align(ctx, solved.result, p, method, loaded[height])
             except PosesFailure as e:
                 solved.failure = str(e)
         solved.seconds = time.perf_counter() - t0
@@ -178,17 +182,23 @@ def run(ctx: StageContext) -> PosesOutput:
 
 def _auto(attempt: Callable[[str], _Solved], n: int) -> tuple[_Solved, list[_Solved], str]:
     """The upright solver first (levelled 360° cameras, wide baselines); COLMAP's incremental
-    mapper where the upright solver left views out or failed; the result placing more views,
-    and on a tie the upright one (its residual is the smaller on levelled cameras)."""
+    mapper where the upright solver left views out, failed or found no metric scale; the result
+    placing more views, and on a tie the one with a metric scale, then the upright one (its
+    residual is the smaller on levelled cameras). An upright result without a metric scale needs
+    a pair COLMAP can verify: between panoramas of different rooms the upright pair search can
+    return a confident pose, which the missing floor used to give away (docs/poses.md)."""
     upright = attempt("upright")
-    if upright.failure is None and upright.placed == n:
+    scaled = upright.alignment is not None and upright.alignment.scale_source != NO_SCALE
+    if upright.failure is None and upright.placed == n and scaled:
         return upright, [upright], f"the upright solver placed all {n} views"
     colmap = attempt("equirect")
     attempts = [upright, colmap]
+    if upright.failure is None and not scaled and colmap.result.verified_pairs == 0:
+        upright.failure = "no metric scale, and no pair of panoramas that COLMAP verifies confirms its pairs"
     ok = [s for s in attempts if s.failure is None]
     if not ok:
         return upright, attempts, ""
-    best = max(ok, key=lambda s: (s.placed, s.method == "upright"))
+    best = max(ok, key=lambda s: (s.placed, s.alignment.scale_source != NO_SCALE, s.method == "upright"))
     other = colmap if best is upright else upright
     why = other.failure or f"it placed {other.placed} of {n}"
     return best, attempts, (f"{best.method} placed {best.placed} of {n} views; {other.method}: {why}")
@@ -258,8 +268,11 @@ def _solve(method: str, panoramas: list[Panorama], p: Params, height: int) -> _S
 FLOOR_DEPRESSION_DEG = {"upright": 15.0, "upright-pair": 0.0, "equirect": 0.0, "rig": 0.0}
 
 
-def _align(ctx: StageContext, result: Reconstruction, p: Params, method: str) -> Alignment:
-    """Upright and metric: the frame of the given poses, else the floor and camera heights."""
+def _align(ctx: StageContext, result: Reconstruction, p: Params, method: str,
+           panoramas: list[Panorama]) -> Alignment:
+    """Upright and metric: the frame of the given poses, else the floor and camera heights: the
+    floor plane among the sparse points, else the floor level the floor–wall boundaries show in
+    the panoramas (sfm.floor_boundary), else none: the poses are kept up to scale."""
     views = ctx.scene.views
     registered = [v for v in views if v.name in result.cam_from_world]
     if sum(v.split == "train" for v in registered) < 2:
@@ -270,10 +283,12 @@ def _align(ctx: StageContext, result: Reconstruction, p: Params, method: str) ->
     known = {v.name: v.pose_matrix for v in registered if v.pose is not None}
     heights = {v.name: v.camera_height or p.default_camera_height for v in views}
     order = [v.name for v in views]
+    cues = [(FLOOR_WALL_BOUNDARY, floor_cue(panoramas, result.seen_by))]
     try:
-        return (align_to_known(cam_to_world, known, result.points, heights, order) if known
-                else align_to_floor(cam_to_world, result.points, heights, order,
-                                    min_depression_deg=FLOOR_DEPRESSION_DEG[method]))
+        return (align_to_known(cam_to_world, known, result.points, heights, order, cues=cues, unscaled=True)
+                if known else
+                align_to_floor(cam_to_world, result.points, heights, order,
+                               min_depression_deg=FLOOR_DEPRESSION_DEG[method], cues=cues, unscaled=True))
     except ValueError as e:
         raise PosesFailure(f"cannot make the poses metric: {e}") from None
 
@@ -290,7 +305,11 @@ def _output(ctx: StageContext, chosen: _Solved, attempts: list[_Solved], reason:
     if left_out:
         ctx.warn("could not place " + "; ".join(f"{k} ({why})" for k, why in left_out.items())
                  + ": left out of the later stages")
-    if alignment.source == "floor" and not any(v.camera_height for v in views):
+    if alignment.scale_source == NO_SCALE:
+        ctx.warn("no metric scale: no floor plane among the sparse points and no floor–wall boundary in the "
+                 "panoramas; the poses are kept up to scale (scale_source none; give camera poses or a scale "
+                 "in scene.json, docs/poses.md)")
+    elif alignment.source == "floor" and not any(v.camera_height for v in views):
         ctx.warn(f"no camera_height in scene.json: the scale assumes {p.default_camera_height:g} m for every camera")
     transform = alignment.transform
 
@@ -310,6 +329,7 @@ def _output(ctx: StageContext, chosen: _Solved, attempts: list[_Solved], reason:
 
     points = transform.points(result.points)
     write_ply(ctx.out_dir / PLY_NAME, points, result.colors / 255.0, np.zeros_like(points))
+    _write_observations(ctx.out_dir / OBSERVATIONS_NAME, points, result, [v.view for v in out_views if v.registered])
     draw_cameras(ctx.out_dir / DRAWING_NAME, points, {v.view: np.asarray(v.pose) for v in out_views if v.registered})
     report = residual = None
     pair = chosen.pair
@@ -332,11 +352,31 @@ def _output(ctx: StageContext, chosen: _Solved, attempts: list[_Solved], reason:
         attempts=[Attempt(method=s.method, placed=s.placed, seconds=s.seconds, failure=s.failure) for s in attempts],
         pairs=pairs, left_out=left_out, residual_deg=residual,
         upright_pair=report, working_height=chosen.height, views=out_views, frame=alignment.source,
-        scale=transform.scale, scale_uncertainty=alignment.scale_uncertainty,
+        scale_source=alignment.scale_source, scale=transform.scale, scale_uncertainty=alignment.scale_uncertainty,
         floor_tilt_deg=alignment.floor_tilt_deg, points=len(points),
         mean_track_length=float(result.track_length.mean()) if len(points) else 0.0,
-        verified_pairs=result.verified_pairs, sparse_points=PLY_NAME, drawing=DRAWING_NAME,
+        verified_pairs=result.verified_pairs, sparse_points=PLY_NAME, observations=OBSERVATIONS_NAME,
+        drawing=DRAWING_NAME,
         timings_s={**result.timings, "total": chosen.seconds})
+
+
+def _write_observations(path: Path, points: np.ndarray, result: Reconstruction, views: list[str]) -> None:
+    """The observations file: `points` [N,3] (world), `views` [V] names, and per observation its
+    `view` and `point` indices; where the solve records none (the two-view solver) every view sees
+    every point."""
+    every = np.arange(len(points))
+    seen = [np.asarray(result.seen_by.get(v, every) if result.seen_by else every, int) for v in views]
+    np.savez_compressed(path, points=points.astype(np.float32), views=np.array(views),
+                        view=np.repeat(np.arange(len(views)), [len(s) for s in seen]).astype(np.int32),
+                        point=(np.concatenate(seen) if seen else np.zeros(0, int)).astype(np.int32))
+
+
+def read_observations(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The points of an observations file and, per view, the points it observes."""
+    with np.load(path) as f:
+        views, view, point = [str(v) for v in f["views"]], f["view"], f["point"]
+        points = f["points"].astype(np.float64)
+    return points, {name: points[point[view == k]] for k, name in enumerate(views)}
 
 
 def _rounded(height: float | None) -> float | None:
@@ -348,7 +388,7 @@ def summary(data: PosesOutput) -> str:
     placed = sum(v.registered for v in data.views)
     text = (f"poses: {placed} of {len(data.views)} views placed by {data.method}"
             + (f" ({data.method_reason})" if data.requested_method == "auto" and data.method_reason else "")
-            + f"; scale {data.scale:.4g} m/unit ± {100 * data.scale_uncertainty:.1f} % from the {data.frame}")
+            + f"; {data.scale_text()}")
     if data.residual_deg is not None:
         text += f"; median residual {data.residual_deg:.3f}°"
     if data.left_out:

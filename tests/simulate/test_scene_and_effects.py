@@ -123,7 +123,7 @@ def test_demo_preset_learnable_layout(tmp_path):
 
 class _Counter:
     def __init__(self, monkeypatch):
-        names = ("texture", "furniture", "shading", "noise", "exposure", "tripod", "antialias")
+        names = ("texture", "furniture", "shading", "noise", "exposure", "tripod", "antialias", "plain_floor")
         self.calls = {n: 0 for n in names}
         for name in self.calls:
             original = getattr(fx, name)
@@ -148,6 +148,7 @@ class _Counter:
         ("exposure", {"exposure"}),
         ("tripod", {"tripod"}),
         ("aa", {"antialias"}),
+        ("plain-floor", {"plain_floor"}),
         ("all", {"texture", "furniture", "shading", "noise", "exposure", "tripod", "antialias"}),
     ],
 )
@@ -160,7 +161,8 @@ def test_effects_off_are_never_evaluated(tmp_path, monkeypatch, effects, expecte
     assert called == expected
     # Only the effects that ran show up in the profile.
     timed = set(res.timings) & {"texture", "furniture", "shading", "noise", "exposure", "tripod", "aa"}
-    assert timed == {("aa" if e == "antialias" else e) for e in expected}
+    # (plain-floor only marks the floor plain: nothing to time)
+    assert timed == {("aa" if e == "antialias" else e) for e in expected if e != "plain_floor"}
 
 
 def test_effects_do_change_the_image(tmp_path):
@@ -170,11 +172,18 @@ def test_effects_do_change_the_image(tmp_path):
 
     img0 = cv2.imread(str(base.out_dir / "images" / "train_00.png")).astype(int)
     for e in simulate.EFFECTS:
+        if e == "plain-floor":  # it takes the floor's texture away: nothing to take without `texture`
+            base_img = cv2.imread(str(simulate.generate_scene(
+                tmp_path / "texture-only", preset="cuboid", views=1, test_views=0, height=32, seed=2,
+                effects="texture").out_dir / "images" / "train_00.png")).astype(int)
+            e, reference = "texture,plain-floor", base_img
+        else:
+            reference = img0
         r = simulate.generate_scene(
             tmp_path / e, preset="cuboid", views=1, test_views=0, height=32, seed=2, effects=e
         )
         img = cv2.imread(str(r.out_dir / "images" / "train_00.png")).astype(int)
-        assert np.abs(img - img0).mean() > 0.2, f"effect {e} changed nothing"
+        assert np.abs(img - reference).mean() > 0.2, f"effect {e} changed nothing"
         # Geometry and cameras do not depend on the effects (independent random streams).
         a = json.loads((base.out_dir / "scene.json").read_text())["views"][0]["pose"]
         b = json.loads((r.out_dir / "scene.json").read_text())["views"][0]["pose"]
@@ -192,7 +201,7 @@ def test_noise_free_scene_is_flat_per_material(tmp_path):
 
 
 def test_parse_effects():
-    assert parse_effects("all") == set(simulate.EFFECTS) - {"detail"}  # detail is opt-in
+    assert parse_effects("all") == set(simulate.EFFECTS) - {"detail", "plain-floor"}  # opt-in effects
     assert parse_effects("none") == set()
     assert parse_effects("texture, aa") == {"texture", "aa"}
     assert parse_effects({"noise"}) == {"noise"}
