@@ -40,10 +40,13 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 
 from sfm.records import Panorama, Reconstruction
 from sfm.rig import rotation_about_y
@@ -184,22 +187,20 @@ def average_yaws(n: int, edges: list[tuple[int, int, float, float]], tolerance: 
 
 
 def _tree_yaws(n: int, edges, order) -> np.ndarray:
-    parent = list(range(n))
-
-    def find(x):
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
-
+    """Yaws along the spanning forest Kruskal builds taking the edges in `order`: scipy's minimum
+    spanning forest over their ranks (distinct, so the forest is that one)."""
+    rank = np.zeros((n, n))
+    for r, k in enumerate(order, start=1):
+        i, j = sorted(edges[k][:2])
+        if rank[i, j] == 0:  # of two pairs between the same views, the earlier one
+            rank[i, j] = r
+    forest = minimum_spanning_tree(rank).tocoo()
+    by_rank = {r: k for r, k in enumerate(order, start=1)}
     adjacency: dict[int, list[tuple[int, float]]] = {k: [] for k in range(n)}
-    for k in order:
-        i, j, t, _ = edges[k]
-        ri, rj = find(i), find(j)
-        if ri != rj:
-            parent[ri] = rj
-            adjacency[i].append((j, t))
-            adjacency[j].append((i, -t))
+    for r in forest.data.astype(int):
+        i, j, t, _ = edges[by_rank[r]]
+        adjacency[i].append((j, t))
+        adjacency[j].append((i, -t))
     yaw = np.full(n, np.nan)
     for start in range(n):
         if not np.isnan(yaw[start]):
@@ -219,26 +220,17 @@ def _tree_yaws(n: int, edges, order) -> np.ndarray:
 
 
 def components(n: int, edges: Sequence[tuple[int, int]]) -> list[list[int]]:
-    """Connected components of the views under `edges`, largest first."""
-    adjacency: dict[int, set[int]] = {k: set() for k in range(n)}
-    for i, j in edges:
-        adjacency[i].add(j)
-        adjacency[j].add(i)
-    seen, out = set(), []
-    for start in range(n):
-        if start in seen:
-            continue
-        comp, stack = [], [start]
-        seen.add(start)
-        while stack:
-            u = stack.pop()
-            comp.append(u)
-            for v in adjacency[u]:
-                if v not in seen:
-                    seen.add(v)
-                    stack.append(v)
-        out.append(sorted(comp))
+    """Connected components of the views under `edges`, largest first (ties: lowest view first)."""
+    labels = _component_labels(n, edges)
+    out = [np.flatnonzero(labels == c).tolist() for c in np.unique(labels)]
     return sorted(out, key=lambda c: (-len(c), c[0]))
+
+
+def _component_labels(n: int, edges: Sequence[tuple[int, int]]) -> np.ndarray:
+    """[n] connected-component label of each node under `edges` (scipy.sparse.csgraph)."""
+    ij = np.asarray(list(edges), int).reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(ij)), (ij[:, 0], ij[:, 1])), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
 
 
 def length_ratios(edges: list[PairEdge], feats: list[tuple[np.ndarray, np.ndarray]],
@@ -355,29 +347,16 @@ class Tracks:
 def build_tracks(edges: list[PairEdge], feats: list[tuple[np.ndarray, np.ndarray]]) -> Tracks:
     """Chain the pairs' inlier matches into tracks (union-find over (view, feature)); a track
     holding two features of one view is dropped (a wrong match somewhere along it)."""
-    ids: dict[tuple[int, int], int] = {}
-    parent: list[int] = []
-
-    def node(key):
-        if key not in ids:
-            ids[key] = len(parent)
-            parent.append(len(parent))
-        return ids[key]
-
-    def find(x):
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
-
+    ids: dict[tuple[int, int], int] = {}  # (view, feature) -> node, numbered as first matched
+    links = []
     for e in edges:
         for fa, fb in e.result.matches.tolist():
-            a, b = find(node((e.i, fa))), find(node((e.j, fb)))
-            if a != b:
-                parent[a] = b
+            links.append((ids.setdefault((e.i, fa), len(ids)), ids.setdefault((e.j, fb), len(ids))))
+    labels = _component_labels(len(ids), links)
+    # tracks in the order of their first node, members in node order
     groups: dict[int, list[tuple[int, int]]] = {}
     for key, k in ids.items():
-        groups.setdefault(find(k), []).append(key)
+        groups.setdefault(int(labels[k]), []).append(key)
     view, feature, point = [], [], []
     count = 0
     for members in groups.values():
@@ -564,6 +543,16 @@ def refine(tracks: Tracks, yaw: np.ndarray, centres: np.ndarray, points: np.ndar
 # ----------------------------------------------------------------------------- the solver
 
 
+@contextmanager
+def _timed(timings: dict[str, float], step: str):
+    """Adds the wall seconds of the block to timings[step]."""
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        timings[step] = timings.get(step, 0.0) + time.perf_counter() - t0
+
+
 def solve(panoramas: Sequence[Panorama], options: UprightGlobalOptions | None = None,
           progress: Callable[[str, int, int], None] = lambda step, done, total: None) -> GlobalResult:
     """Poses of `panoramas` (levelled, one size) as a Reconstruction in an upright frame (y down,
@@ -574,72 +563,68 @@ def solve(panoramas: Sequence[Panorama], options: UprightGlobalOptions | None = 
     n = len(panoramas)
     timings: dict[str, float] = {}
 
-    t0 = time.perf_counter()
-    done = [0]
+    with _timed(timings, "features"):
+        done = [0]
 
-    def extract(p):
-        out = features(p, options.pair)
-        done[0] += 1
-        progress("features", done[0], n)
-        return out
+        def extract(p):
+            out = features(p, options.pair)
+            done[0] += 1
+            progress("features", done[0], n)
+            return out
 
-    with ThreadPoolExecutor(max(1, options.threads)) as pool:  # OpenCV releases the GIL
-        feats = list(pool.map(extract, panoramas))
-    timings["features"] = time.perf_counter() - t0
+        with ThreadPoolExecutor(max(1, options.threads)) as pool:  # OpenCV releases the GIL
+            feats = list(pool.map(extract, panoramas))
 
-    t0 = time.perf_counter()
-    sim = similarity(feats, options.similarity_features)
-    candidates = candidate_pairs(sim, options)
-    timings["similarity"] = time.perf_counter() - t0
+    with _timed(timings, "similarity"):
+        sim = similarity(feats, options.similarity_features)
+        candidates = candidate_pairs(sim, options)
 
-    t0 = time.perf_counter()
-    edges: list[PairEdge] = []
-    tried: dict[tuple[int, int], int] = {}
+    with _timed(timings, "pairs"):
+        edges: list[PairEdge] = []
+        tried: dict[tuple[int, int], int] = {}
 
-    def solve_pair(pair):
-        i, j = pair
-        return pair, pose_from_features(panoramas[i], panoramas[j], feats[i], feats[j], options.pair)
+        def solve_pair(pair):
+            i, j = pair
+            return pair, pose_from_features(panoramas[i], panoramas[j], feats[i], feats[j], options.pair)
 
-    finished = [0]
-    with ThreadPoolExecutor(max(1, options.threads)) as pool:  # numpy releases the GIL in its kernels
-        for (i, j), result in pool.map(solve_pair, candidates):
-            finished[0] += 1
-            progress("pairs", finished[0], len(candidates))
-            tried[(i, j)] = 0 if result is None else result.inliers
-            if result is not None:
-                edges.append(PairEdge(i, j, result))
-    timings["pairs"] = time.perf_counter() - t0
+        finished = [0]
+        with ThreadPoolExecutor(max(1, options.threads)) as pool:  # numpy releases the GIL in its kernels
+            for (i, j), result in pool.map(solve_pair, candidates):
+                finished[0] += 1
+                progress("pairs", finished[0], len(candidates))
+                tried[(i, j)] = 0 if result is None else result.inliers
+                if result is not None:
+                    edges.append(PairEdge(i, j, result))
 
-    t0 = time.perf_counter()
-    left_out: dict[str, str] = {}
-    verified = {v for e in edges for v in (e.i, e.j)}
-    for v in range(n):
-        if v not in verified:
-            left_out[names[v]] = "no verified pair" if any(v in p for p in candidates) else \
-                "no similar panorama (no candidate pair)"
-    kept = np.zeros(len(edges), bool)
-    yaw = np.zeros(n)
-    centres = np.zeros((n, 3))
-    c2 = np.zeros((n, 2))
-    if edges:
-        yaw, kept = average_yaws(n, [(e.i, e.j, e.result.pose.theta, float(e.inliers)) for e in edges],
-                                 np.radians(options.yaw_tolerance_deg), options.seed)
-        ratios = length_ratios(edges, feats, yaw)
-        for _ in range(len(edges)):
-            if not kept.any():
-                break
-            # the largest component of the kept pairs is placed; the others fall out below
-            comp = components(n, [(edges[k].i, edges[k].j) for k in np.flatnonzero(kept)])[0]
-            active = kept & np.array([e.i in comp for e in edges])
-            c2, _ = fit_positions(n, edges, yaw, ratios, active)
-            error = direction_error(c2, edges, yaw)
-            worst = np.flatnonzero(active)[np.argmax(error[active])]
-            if error[worst] <= np.radians(options.direction_tolerance_deg):
-                kept = active
-                break
-            kept[worst] = False  # one at a time: a wrong pair drags its neighbours' fit too
-        centres[:, 0], centres[:, 2] = c2[:, 0], c2[:, 1]
-    timings["averaging"] = time.perf_counter() - t0
+    with _timed(timings, "averaging"):
+        left_out: dict[str, str] = {}
+        verified = {v for e in edges for v in (e.i, e.j)}
+        for v in range(n):
+            if v not in verified:
+                left_out[names[v]] = "no verified pair" if any(v in p for p in candidates) else \
+                    "no similar panorama (no candidate pair)"
+        kept = np.zeros(len(edges), bool)
+        yaw = np.zeros(n)
+        centres = np.zeros((n, 3))
+        c2 = np.zeros((n, 2))
+        if edges:
+            yaw, kept = average_yaws(n, [(e.i, e.j, e.result.pose.theta, float(e.inliers)) for e in edges],
+                                     np.radians(options.yaw_tolerance_deg), options.seed)
+            ratios = length_ratios(edges, feats, yaw)
+            for _ in range(len(edges)):
+                if not kept.any():
+                    break
+                # the largest component of the kept pairs is placed; the others fall out below
+                comp = components(n, [(edges[k].i, edges[k].j) for k in np.flatnonzero(kept)])[0]
+                active = kept & np.array([e.i in comp for e in edges])
+                c2, _ = fit_positions(n, edges, yaw, ratios, active)
+                error = direction_error(c2, edges, yaw)
+                worst = np.flatnonzero(active)[np.argmax(error[active])]
+                if error[worst] <= np.radians(options.direction_tolerance_deg):
+                    kept = active
+                    break
+                kept[worst] = False  # one at a time: a wrong pair drags its neighbours' fit too
+            centres[:, 0], centres[:, 2] = c2[:, 0], c2[:, 1]
 
     comps = components(n, [(edges[k].i, edges[k].j) for k in np.flatnonzero(kept)])
     placed = comps[0] if comps and len(comps[0]) >= 2 else []
@@ -652,36 +637,36 @@ def solve(panoramas: Sequence[Panorama], options: UprightGlobalOptions | None = 
     pairs_report = [(names[i], names[j], tried[(i, j)],
                      any(kept[k] for k, e in enumerate(edges) if (e.i, e.j) == (i, j)) and i in placed)
                     for i, j in candidates]
+
+    def unplaced() -> GlobalResult:  # nothing placed: the pairs and the reasons only
+        empty = Reconstruction({}, {}, {}, np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, int),
+                               len(edges), 0, timings)
+        return GlobalResult(empty, pairs_report, left_out, len(candidates), float("nan"))
+
     if len(placed) < 2:
-        empty = Reconstruction({}, {}, {}, np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, int),
-                               len(edges), 0, timings)
-        return GlobalResult(empty, pairs_report, left_out, len(candidates), float("nan"))
+        return unplaced()
 
-    t0 = time.perf_counter()
-    used = [e for k, e in enumerate(edges) if kept[k] and e.i in placed]
-    tracks = build_tracks(used, feats)
-    # the frame: the first placed view at the origin, mean spread of the centres 1
-    centres = centres - centres[placed[0]]
-    spread = float(np.mean(np.linalg.norm(centres[placed] - centres[placed].mean(axis=0), axis=1)))
-    if not np.isfinite(spread) or spread <= 0:  # the directions did not separate the centres
-        empty = Reconstruction({}, {}, {}, np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, int),
-                               len(edges), 0, timings)
-        return GlobalResult(empty, pairs_report, left_out, len(candidates), float("nan"))
-    centres /= spread
-    points = triangulate_tracks(tracks, yaw, centres)
-    error = angular_errors(tracks, yaw, centres, points)
-    tracks = keep_observations(tracks, error < np.radians(max(options.track_tolerance_deg, 3.0)))
-    points = triangulate_tracks(tracks, yaw, centres)
-    timings["triangulation"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    for step in range(2):
-        yaw, centres, points = refine(tracks, yaw, centres, points, placed, options.refine_scale_deg)
-        error = angular_errors(tracks, yaw, centres, points)
-        limit = options.refine_drop_deg if step == 0 else options.track_tolerance_deg
-        tracks = keep_observations(tracks, error < np.radians(limit))
+    with _timed(timings, "triangulation"):
+        used = [e for k, e in enumerate(edges) if kept[k] and e.i in placed]
+        tracks = build_tracks(used, feats)
+        # the frame: the first placed view at the origin, mean spread of the centres 1
+        centres = centres - centres[placed[0]]
+        spread = float(np.mean(np.linalg.norm(centres[placed] - centres[placed].mean(axis=0), axis=1)))
+        if not np.isfinite(spread) or spread <= 0:  # the directions did not separate the centres
+            return unplaced()
+        centres /= spread
         points = triangulate_tracks(tracks, yaw, centres)
-    timings["refinement"] = time.perf_counter() - t0
+        error = angular_errors(tracks, yaw, centres, points)
+        tracks = keep_observations(tracks, error < np.radians(max(options.track_tolerance_deg, 3.0)))
+        points = triangulate_tracks(tracks, yaw, centres)
+
+    with _timed(timings, "refinement"):
+        for step in range(2):
+            yaw, centres, points = refine(tracks, yaw, centres, points, placed, options.refine_scale_deg)
+            error = angular_errors(tracks, yaw, centres, points)
+            limit = options.refine_drop_deg if step == 0 else options.track_tolerance_deg
+            tracks = keep_observations(tracks, error < np.radians(limit))
+            points = triangulate_tracks(tracks, yaw, centres)
     error = np.degrees(angular_errors(tracks, yaw, centres, points))
     median_error = float(np.median(error))
     # points seen under a small angle are poorly placed along their rays: far from every camera,
