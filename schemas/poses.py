@@ -38,6 +38,9 @@ class UprightPairReport(BaseModel):
     residual_rms_deg: float = Field(description="RMS angular epipolar error of the inliers.")
     score: float = Field(description="Coarse search score of the pose (truncated inlier count).")
     runner_up: float = Field(description="Best coarse score at least 5° away: how distinct the pose is.")
+    search: Literal["peaks", "exhaustive", "exhaustive fallback"] = Field(
+        default="peaks", description="The coarse search whose pose this is: the fast peak search, the exhaustive "
+                                     "one, or the exhaustive one after the fast one found nothing convincing.")
 
 
 class PairRecord(BaseModel):
@@ -49,6 +52,21 @@ class PairRecord(BaseModel):
     used: bool = Field(description="Kept by the global solve (its yaw and direction agree with the others).")
 
 
+class PairSearch(BaseModel):
+    """The upright solvers' (yaw, baseline direction) searches over their pairs (sfm.upright_pair)."""
+
+    pairs: int = Field(description="Pairs searched.")
+    fast: bool = Field(description="The fast peak search ran first (False: only the exhaustive one).")
+    exhaustive: int = Field(description="Pairs the exhaustive search ran on after the fast one found nothing "
+                                        "convincing (issue 36).")
+    recovered: int = Field(description="Of those, pairs whose exhaustive pose was verified.")
+    exhaustive_seconds: float = Field(description="Time spent in those exhaustive searches and their verification.")
+    camera_fixed_matches: int = Field(
+        description="Most matches of one pair at the same bearing in both panoramas, well below the horizon: "
+                    "something travelling with the camera (tripod, hand) that no mask removed.")
+    text: str = Field(description="The same in words.")
+
+
 class Attempt(BaseModel):
     """One method the stage ran (method auto may run several)."""
 
@@ -56,6 +74,7 @@ class Attempt(BaseModel):
     placed: int = Field(description="Views the method placed (0 when it failed).")
     seconds: float
     failure: str | None = Field(default=None, description="Why it failed or was not taken.")
+    pair_search: PairSearch | None = Field(default=None, description="Upright solvers: which pair searches ran.")
 
 
 class PosesOutput(BaseModel):

@@ -16,10 +16,18 @@ observation, not a hundred); a coarse search over all (theta, phi); guided
 matching in a band around the winner's epipolar planes (the ratio test among
 the few candidates near the plane passes many correct matches that the global
 ratio test lost); a fine search over those; the inliers triangulated.
+
+The coarse search is fast (search_pose_peaks: a 3x coarser grid, its best peaks
+refined); where its pose is not convincing (not distinct, too few guided
+matches or inliers) the exhaustive search (search_pose) runs on the same
+matches and its pose is verified instead (issue 36: speed must not cost real
+pairs). PairResult.search and SearchLog say which ran.
 """
 
 from __future__ import annotations
 
+import threading
+import time
 from dataclasses import dataclass, field
 
 import cv2
@@ -46,6 +54,13 @@ class UprightPairOptions:
     coarse_max_matches: int = 800
     #: the coarse search refines this many peaks of a 3x coarser grid (search_pose_peaks); 0: every pose
     coarse_peaks: int = 12
+    #: where the peak search's pose is not convincing (not distinct, too few guided matches or
+    #: inliers), search every pose (search_pose) on the same matches and verify its pose instead
+    exhaustive_fallback: bool = True
+    #: inliers the exhaustive fallback's pose needs (min_inliers for the others): searching every
+    #: pose of a pair the fast search found nothing in finds a distinct wrong one more often (on 110
+    #: simulated pairs: 3 right ones with 42-60 inliers, 1 wrong one with 23; docs/poses.md)
+    fallback_min_inliers: int = 30
     #: guided matching: candidates within this angle of the epipolar plane, ratio test among them
     guided_band_deg: float = 3.0
     guided_ratio: float = 0.8
@@ -58,6 +73,62 @@ class UprightPairOptions:
     #: many inliers; unrelated panoramas can pass both (docs/poses.md): the caller vouches for overlap
     min_distinct: float = 1.15
     min_inliers: int = 20
+    #: where given, every pair searched is counted in it (which search ran; SearchLog)
+    log: SearchLog | None = field(default=None, repr=False, compare=False)
+
+
+#: Something that travels with the camera (a tripod, a hand, a holder) sits at one bearing in
+#: every panorama: putative matches whose bearings agree within this angle in the two panoramas'
+#: own frames, this far below the horizon, are taken for it. A static point does that only on one
+#: curve (equidistant from both centres, where the yaw between the panoramas undoes the parallax):
+#: 50° or more below the horizon that curve holds hardly any point, while tripods and holders lie
+#: 55-80° down (zind_pair's 65-77°, openmvg_flat's 65-75°). At 40-55° a hand-held walk-through
+#: gave 10 such static points between views 0.4 m apart (openmvg_flat at 1024 rows; docs/poses.md).
+CAMERA_FIXED_DEG = 1.0
+CAMERA_FIXED_BELOW_DEG = 50.0
+#: ... and this many of them in one pair say that it is there.
+CAMERA_FIXED_MIN = 8
+
+
+@dataclass
+class SearchLog:
+    """Which searches a solve ran, summed over its pairs (sfm.upright_global searches pairs in
+    threads: counts are taken under a lock)."""
+
+    #: pairs searched (the coarse search ran)
+    pairs: int = 0
+    #: the fast peak search ran first (False: coarse_peaks=0, the exhaustive search only)
+    fast: bool = True
+    #: pairs the exhaustive search ran on after the fast one found nothing convincing
+    exhaustive: int = 0
+    #: of those, pairs whose exhaustive pose was verified
+    recovered: int = 0
+    #: seconds spent in the exhaustive fallback (search and verification)
+    exhaustive_seconds: float = 0.0
+    #: the most putative matches of one pair at one bearing in both panoramas, well below the
+    #: horizon (camera_fixed_matches): something travelling with the camera, unmasked
+    camera_fixed: int = 0
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+
+    def add(self, *, fast: bool, exhaustive: bool = False, recovered: bool = False, seconds: float = 0.0,
+            camera_fixed: int = 0) -> None:
+        with self._lock:
+            self.pairs += 1
+            self.fast = self.fast and fast
+            self.exhaustive += exhaustive
+            self.recovered += recovered
+            self.exhaustive_seconds += seconds
+            self.camera_fixed = max(self.camera_fixed, camera_fixed)
+
+    def describe(self) -> str:
+        """One phrase: which search ran on how many pairs."""
+        if not self.fast:
+            return f"exhaustive search on {self.pairs} pair{'s' * (self.pairs != 1)}"
+        text = f"fast search on {self.pairs} pair{'s' * (self.pairs != 1)}"
+        if self.exhaustive:
+            text += (f"; exhaustive search on {self.exhaustive} where it found nothing convincing "
+                     f"({self.recovered} verified, {self.exhaustive_seconds:.1f} s)")
+        return text
 
 
 @dataclass
@@ -94,6 +165,9 @@ class PairResult:
     reconstruction: Reconstruction
     #: [inliers,2] feature indices (into `features` of a and of b) of the inlier matches
     matches: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))
+    #: the search whose pose this is: "peaks" (the fast search), "exhaustive" (coarse_peaks=0) or
+    #: "exhaustive fallback" (the fast search's pose was not convincing)
+    search: str = "peaks"
 
 
 def epipolar_error(b1: np.ndarray, w2: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -113,27 +187,34 @@ def _baselines(phis: np.ndarray) -> np.ndarray:
     return np.stack([np.sin(phis), np.zeros_like(phis), np.cos(phis)], axis=-1)
 
 
-def score_grid(b1: np.ndarray, b2: np.ndarray, thetas: np.ndarray, phis: np.ndarray, tau: float) -> np.ndarray:
+def score_grid(b1: np.ndarray, b2: np.ndarray, thetas: np.ndarray, phis: np.ndarray, tau: float,
+               chunk: int = 256) -> np.ndarray:
     """[T,P] truncated quadratic score sum(1 - min(e / tau, 1)^2) of the correspondences b1[i] <->
     b2[i] for every (theta, phi); a match whose rays meet behind a camera scores 0. The error is
     taken as its sine (within 1e-4 of the angle at the tolerances used, a degree or less): no
-    arcsin over the whole grid, in float32, which makes the exhaustive search several times faster."""
+    arcsin over the whole grid, in float32, which makes the exhaustive search several times faster.
+    The correspondences are taken `chunk` at a time, every theta over each chunk: the [chunk,P]
+    intermediates then stay in the CPU's cache (800 matches at once over 360 phis did not: the
+    exhaustive search took 8x as long)."""
     b1 = np.asarray(b1, np.float32)
     b2 = np.asarray(b2, np.float32)
-    c = _baselines(phis).astype(np.float32)  # [P,3]
-    ac = b1 @ c.T  # [N,P]
-    sin_b = np.sqrt(np.maximum(1.0 - ac**2, 1e-12))
+    c = np.ascontiguousarray(_baselines(phis).astype(np.float32).T)  # [3,P]
     inv_sin_tau = np.float32(1.0 / np.sin(tau))
+    rotations = [rotation_about_y(np.degrees(theta)).T.astype(np.float32) for theta in thetas]
     out = np.zeros((len(thetas), len(phis)))
-    for i, theta in enumerate(thetas):
-        w2 = b2 @ rotation_about_y(np.degrees(theta)).T.astype(np.float32)
-        num = np.abs(np.cross(b1, w2) @ c.T)
-        bc = w2 @ c.T
-        ab = np.sum(b1 * w2, axis=1)[:, None]
-        # the larger of the two plane angles: num over the smaller of the two sines
-        ratio = np.minimum(num / np.minimum(np.sqrt(np.maximum(1.0 - bc**2, 1e-12)), sin_b) * inv_sin_tau, 1.0)
-        front = (ac - ab * bc > 0) & (ab * ac - bc > 0)
-        out[i] = np.sum(np.where(front, 1.0 - ratio**2, 0.0), axis=0, dtype=np.float64)
+    for start in range(0, len(b1), chunk):
+        a1, a2 = b1[start:start + chunk], b2[start:start + chunk]
+        ac = a1 @ c  # [n,P]
+        sin_b = np.sqrt(np.maximum(1.0 - ac**2, 1e-12))
+        for i, rotation in enumerate(rotations):
+            w2 = a2 @ rotation
+            num = np.abs(np.cross(a1, w2) @ c)
+            bc = w2 @ c
+            ab = np.sum(a1 * w2, axis=1)[:, None]
+            # the larger of the two plane angles: num over the smaller of the two sines
+            ratio = np.minimum(num / np.minimum(np.sqrt(np.maximum(1.0 - bc**2, 1e-12)), sin_b) * inv_sin_tau, 1.0)
+            front = (ac - ab * bc > 0) & (ab * ac - bc > 0)
+            out[i] += np.sum(np.where(front, 1.0 - ratio**2, 0.0), axis=0, dtype=np.float64)
     return out
 
 
@@ -330,11 +411,51 @@ def pose_from_features(a: Panorama, b: Panorama, feat_a: tuple[np.ndarray, np.nd
         return None
     # the putative matches are sorted by descriptor distance: the search takes the best ones
     top = pairs[:options.coarse_max_matches]
-    if options.coarse_peaks:
-        coarse = search_pose_peaks(f1[top[:, 0]], f2[top[:, 1]], options.coarse_step_deg, options.coarse_tau_deg,
-                                   options.coarse_peaks)
-    else:
-        coarse = search_pose(f1[top[:, 0]], f2[top[:, 1]], options.coarse_step_deg, options.coarse_tau_deg)
+    b1, b2 = f1[top[:, 0]], f2[top[:, 1]]
+    fixed = camera_fixed_matches(b1, b2)
+    if not options.coarse_peaks:
+        coarse = search_pose(b1, b2, options.coarse_step_deg, options.coarse_tau_deg)
+        result = _verified(a, b, f1, f2, distance, coarse, len(pairs), options, "exhaustive", options.min_inliers)
+        if options.log is not None:
+            options.log.add(fast=False, camera_fixed=fixed)
+        return result
+    coarse = search_pose_peaks(b1, b2, options.coarse_step_deg, options.coarse_tau_deg, options.coarse_peaks)
+    result = _verified(a, b, f1, f2, distance, coarse, len(pairs), options, "peaks", options.min_inliers)
+    if result is not None or not options.exhaustive_fallback:
+        if options.log is not None:
+            options.log.add(fast=True, camera_fixed=fixed)
+        return result
+    # nothing convincing: the fast search may have missed the peak (it refines only the coarse
+    # grid's best peaks, and the coarse grid's wider tolerance lets the wrong matches bury a
+    # narrow one); the exhaustive search cannot miss it
+    t0 = time.perf_counter()
+    full = search_pose(b1, b2, options.coarse_step_deg, options.coarse_tau_deg)
+    # the same best pose: its runner-up is no smaller and every later step the same, so no better
+    same = np.isclose(full.theta, coarse.theta) and np.isclose(full.phi, coarse.phi)
+    if not same:
+        result = _verified(a, b, f1, f2, distance, full, len(pairs), options, "exhaustive fallback",
+                           options.fallback_min_inliers)
+    if options.log is not None:
+        options.log.add(fast=True, exhaustive=True, recovered=result is not None,
+                        seconds=time.perf_counter() - t0, camera_fixed=fixed)
+    return result
+
+
+def camera_fixed_matches(b1: np.ndarray, b2: np.ndarray) -> int:
+    """How many of the correspondences b1[i] <-> b2[i] sit at one bearing in both panoramas' own
+    frames (within CAMERA_FIXED_DEG), more than CAMERA_FIXED_BELOW_DEG below the horizon: features
+    of something travelling with the camera (a tripod, a hand), which no nadir mask removed."""
+    if not len(b1):
+        return 0
+    below = np.sin(np.radians(CAMERA_FIXED_BELOW_DEG))
+    same = np.sum(b1 * b2, axis=1) > np.cos(np.radians(CAMERA_FIXED_DEG))
+    return int(np.sum(same & (b1[:, 1] > below) & (b2[:, 1] > below)))  # y is down
+
+
+def _verified(a: Panorama, b: Panorama, f1: np.ndarray, f2: np.ndarray, distance: np.ndarray, coarse: PairPose,
+              putative: int, options: UprightPairOptions, search: str, min_inliers: int) -> PairResult | None:
+    """The coarse pose verified and refined: distinct, guided matches, a fine search over them,
+    `min_inliers` inliers; None where it fails a step."""
     if coarse.score < options.min_distinct * coarse.runner_up:
         return None
     guided = guided_matches(f1, f2, distance, coarse, options)
@@ -347,7 +468,7 @@ def pose_from_features(a: Panorama, b: Panorama, feat_a: tuple[np.ndarray, np.nd
     w2 = g2 @ pose.a_from_b[:3, :3].T
     error, front = epipolar_error(g1, w2, pose.baseline)
     inliers = front & (error < np.radians(options.fine_tau_deg))
-    if inliers.sum() < options.min_inliers:
+    if inliers.sum() < min_inliers:
         return None
     points = triangulate(g1[inliers], w2[inliers], pose.baseline)
     colors = np.array([bearing_color(a, x) for x in g1[inliers]], dtype=np.uint8).reshape(-1, 3)
@@ -359,7 +480,7 @@ def pose_from_features(a: Panorama, b: Panorama, feat_a: tuple[np.ndarray, np.nd
         reprojection_error={a.name: px, b.name: px},
         observations={a.name: int(inliers.sum()), b.name: int(inliers.sum())},
         points=points, colors=colors, track_length=np.full(len(points), 2), verified_pairs=1)
-    return PairResult(pose, len(pairs), len(guided), int(inliers.sum()), residual, recon, guided[inliers])
+    return PairResult(pose, putative, len(guided), int(inliers.sum()), residual, recon, guided[inliers], search)
 
 
 def bearing_color(pano: Panorama, bearing: np.ndarray) -> np.ndarray:

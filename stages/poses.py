@@ -25,12 +25,12 @@ import numpy as np
 from pydantic import Field
 
 from panogeom.images import read_rgb
-from runtime.console import make_progress
+from runtime.console import console, make_progress
 from runfs.errors import PanoError
 from runfs.limits import image_size
 from schemas.scene_loader import valid_mask
 from runtime.stage import Loaded, StageContext
-from schemas.poses import Attempt, PairRecord, PosesOutput, UprightPairReport, ViewPose
+from schemas.poses import Attempt, PairRecord, PairSearch, PosesOutput, UprightPairReport, ViewPose
 from schemas.scene import MAX_CAMERA_HEIGHT, MIN_CAMERA_HEIGHT, Scene
 from schemas.stage_params import StageParams
 from sfm.floor_boundary import floor_cue
@@ -39,7 +39,7 @@ from sfm.records import STEPS as SFM_STEPS
 from sfm.records import Panorama, Reconstruction, SfmOptions
 from sfm.upright_global import GlobalResult, UprightGlobalOptions
 from sfm.upright_global import solve as solve_upright
-from sfm.upright_pair import PairResult, relative_pose
+from sfm.upright_pair import CAMERA_FIXED_MIN, PairResult, SearchLog, UprightPairOptions, relative_pose
 from stages.cloud_io import write_ply
 
 Output = PosesOutput
@@ -134,6 +134,8 @@ class _Solved:
     seconds: float = 0.0
     pair: PairResult | None = None
     solve: GlobalResult | None = None
+    #: the upright solvers: which pair searches ran (the fast one, the exhaustive fallback)
+    search: SearchLog | None = None
 
     @property
     def placed(self) -> int:
@@ -162,6 +164,10 @@ def run(ctx: StageContext) -> PosesOutput:
             loaded[height] = _panoramas(ctx, height)
         t0 = time.perf_counter()
         solved = _solve(method, loaded[height], p, height)
+        if solved.search is not None and solved.search.exhaustive:  # say which pair search ran (issue 36)
+            from rich.markup import escape
+
+            console.print(escape(f"{method}: {solved.search.describe()}"), soft_wrap=True, highlight=False)
         if solved.failure is None:
             try:
                 solved.alignment = _align(ctx, solved.result, p, method, loaded[height])
@@ -176,7 +182,8 @@ def run(ctx: StageContext) -> PosesOutput:
         chosen = attempt(p.method)
         attempts, reason = [chosen], "asked for (poses.method)"
     if chosen.failure is not None:
-        raise PanoError(scene.root, _failure_message(attempts, p.method, len(views)))
+        raise PanoError(scene.root,
+                        _camera_fixed_hint(scene, attempts) + _failure_message(attempts, p.method, len(views)))
     return _output(ctx, chosen, attempts, reason)
 
 
@@ -231,13 +238,15 @@ def _failure_message(attempts: list[_Solved], method: str, n: int) -> str:
 
 def _solve(method: str, panoramas: list[Panorama], p: Params, height: int) -> _Solved:
     threads = p.threads or os.cpu_count() or 1
+    log = SearchLog()
     if method == "upright-pair":
-        pair = relative_pose(*panoramas)
+        pair = relative_pose(*panoramas, UprightPairOptions(log=log))
         if pair is None:
-            return _Solved(method, height, _empty(0), failure="no distinct upright pose between the two panoramas")
-        return _Solved(method, height, pair.reconstruction, pair=pair)
+            return _Solved(method, height, _empty(0), failure="no distinct upright pose between the two panoramas",
+                           search=log)
+        return _Solved(method, height, pair.reconstruction, pair=pair, search=log)
     if method == "upright":
-        options = UprightGlobalOptions(seed=p.seed, threads=threads)
+        options = UprightGlobalOptions(seed=p.seed, threads=threads, pair=UprightPairOptions(log=log))
         with make_progress() as bar:
             tasks: dict[str, int] = {}
 
@@ -249,8 +258,8 @@ def _solve(method: str, panoramas: list[Panorama], p: Params, height: int) -> _S
             try:
                 solved = solve_upright(panoramas, options, progress=progress)
             except np.linalg.LinAlgError as e:  # a degenerate graph: a failure of the method, not of the run
-                return _Solved(method, height, _empty(0), failure=f"the global solve is degenerate ({e})")
-        out = _Solved(method, height, solved.reconstruction, solve=solved)
+                return _Solved(method, height, _empty(0), failure=f"the global solve is degenerate ({e})", search=log)
+        out = _Solved(method, height, solved.reconstruction, solve=solved, search=log)
         if len(solved.reconstruction.cam_from_world) < 2:
             out.failure = ("no verified pair of panoramas" if solved.reconstruction.verified_pairs == 0 else
                            "its pairs do not agree on one placement")
@@ -340,7 +349,7 @@ def _output(ctx: StageContext, chosen: _Solved, attempts: list[_Solved], reason:
             yaw_deg=float(np.degrees(pair.pose.theta)), direction_deg=float(np.degrees(pair.pose.phi)),
             putative_matches=pair.putative, guided_matches=pair.guided, inliers=pair.inliers,
             residual_median_deg=float(np.median(r)), residual_rms_deg=float(np.sqrt(np.mean(r**2))),
-            score=pair.pose.score, runner_up=pair.pose.runner_up)
+            score=pair.pose.score, runner_up=pair.pose.runner_up, search=pair.search)
     pairs = []
     if chosen.solve is not None:
         residual = chosen.solve.residual_deg
@@ -349,7 +358,8 @@ def _output(ctx: StageContext, chosen: _Solved, attempts: list[_Solved], reason:
         residual = float(np.median(list(result.reprojection_error.values()))) * 360.0 / (2 * chosen.height)
     return PosesOutput(
         method=chosen.method, requested_method=p.method, method_reason=reason,
-        attempts=[Attempt(method=s.method, placed=s.placed, seconds=s.seconds, failure=s.failure) for s in attempts],
+        attempts=[Attempt(method=s.method, placed=s.placed, seconds=s.seconds, failure=s.failure,
+                          pair_search=_pair_search(s.search)) for s in attempts],
         pairs=pairs, left_out=left_out, residual_deg=residual,
         upright_pair=report, working_height=chosen.height, views=out_views, frame=alignment.source,
         scale_source=alignment.scale_source, scale=transform.scale, scale_uncertainty=alignment.scale_uncertainty,
@@ -393,7 +403,29 @@ def summary(data: PosesOutput) -> str:
         text += f"; median residual {data.residual_deg:.3f}°"
     if data.left_out:
         text += "; left out: " + ", ".join(f"{k} ({why})" for k, why in data.left_out.items())
+    search = next((a.pair_search for a in data.attempts if a.method == data.method and a.pair_search), None)
+    if search is not None and search.exhaustive:  # the fast pair search found nothing convincing somewhere
+        text += f"; pair search: {search.text}"
     return text
+
+
+def _pair_search(log: SearchLog | None) -> PairSearch | None:
+    if log is None or not log.pairs:
+        return None
+    return PairSearch(pairs=log.pairs, fast=log.fast, exhaustive=log.exhaustive, recovered=log.recovered,
+                      exhaustive_seconds=round(log.exhaustive_seconds, 2), camera_fixed_matches=log.camera_fixed,
+                      text=log.describe())
+
+
+def _camera_fixed_hint(scene: Scene, attempts: list[_Solved]) -> str:
+    """Where the upright pair search matched something travelling with the camera (a tripod or hand
+    no mask removes: it sits at one bearing in every panorama and outvotes the room), say so."""
+    if not any(s.search is not None and s.search.camera_fixed >= CAMERA_FIXED_MIN for s in attempts):
+        return ""
+    nadir = scene.manifest.nadir_mask_deg
+    what = f"a nadir_mask_deg larger than {nadir:g}" if nadir > 0 else "nadir_mask_deg (35 for a tripod)"
+    return (f"something at the bottom of the panoramas moves with the camera (a tripod or a hand?) and matches "
+            f"itself: set {what} in scene.json and run again; ")
 
 
 def _empty(verified_pairs: int) -> Reconstruction:
