@@ -226,7 +226,7 @@ def test_thirteen_view_plain_floor_capture_placed_within_5cm_1_degree_and_5_perc
     the capture effects of sfm.bench), no poses, defaults. Before the boundary cue the stage fitted
     a plane through the furniture tops (scale 3x off); now the floor–wall boundary gives it."""
     scene = tmp_path / "scene"
-    truth = simulate_capture(scene, 13, height=512, plain_floor=True)
+    truth = simulate_capture(scene, 13, height=256, plain_floor=True)
     Engine(load_scene(scene), tmp_path / "run", build_registry(), {}).run(target="poses")
     data = json.loads((tmp_path / "run" / "poses" / "artifact.json").read_text())["data"]
     posed = {v["view"]: np.asarray(v["pose"]) for v in data["views"] if v["registered"]}
