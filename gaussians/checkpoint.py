@@ -23,6 +23,7 @@ import torch
 from gaussians.densify import DensifyStats
 from gaussians.model import Gaussians
 from gaussians.optim import Adam
+from runfs.errors import one_line
 
 __all__ = ["CHECKPOINT_NAME", "CHECKPOINT_VERSION", "checked_state", "plain_number", "read", "trainer_state",
            "write"]
@@ -208,10 +209,8 @@ _STATE_KEYS = frozenset({
 
 
 def _short(x: object, limit: int = 120) -> str:
-    """One line of an error message or value: its first sentence, at most `limit` characters."""
-    text = str(x).strip().splitlines()[0] if str(x).strip() else ""
-    text = text.split(". ")[0]
-    return text if len(text) <= limit else text[: limit - 3] + "..."
+    """An error message or value's first sentence, as one line of at most `limit` characters."""
+    return one_line(str(x).strip().split(". ")[0], limit)
 
 
 _MT_N = 624  # words of MT19937 state
