@@ -8,6 +8,8 @@ STAMP := .venv/.installed
 TEST_STAMP := .venv/.installed-test
 DEMO_SCENE := scenes/demo
 TORCH := torch==2.13.0
+# the SOG check's third-party reader (npm; optional, see setup-test)
+SPLAT_TRANSFORM := @playcanvas/splat-transform@2.7.1
 # auto: the CUDA build of torch where nvidia-smi lists a GPU, the CPU build elsewhere (scripts/install_torch.sh)
 TORCH_BUILD ?= auto
 export TORCH_BUILD
@@ -36,6 +38,10 @@ setup-test: $(TEST_STAMP)
 $(TEST_STAMP): $(STAMP)
 	@# the CPU build's triton is the one CI runs the GPU kernels with in its interpreter; a CUDA build brings its own
 	$(PIP) install -q -e ".[test$$(grep -qx cpu .venv/.torch-build && echo ,interpreter)]"
+	@# optional: PlayCanvas's splat-transform, the third-party SOG reader of tests/export (into .venv/node)
+	@if command -v npm >/dev/null 2>&1; then npm install -s --prefix .venv/node --no-audit --no-fund $(SPLAT_TRANSFORM) \
+	  >/dev/null 2>&1 || echo "note: $(SPLAT_TRANSFORM) not installed (the SOG reader check will skip)"; \
+	  else echo "note: no npm: $(SPLAT_TRANSFORM) not installed (the SOG reader check will skip)"; fi
 	@touch $(TEST_STAMP)
 
 system-deps:

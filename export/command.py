@@ -1,4 +1,4 @@
-"""CLI command `pano-pipe export RUN --format ply|splat|spz|mesh` (pipeline/cli.py registers it).
+"""CLI command `pano-pipe export RUN --format ply|splat|spz|sog|html|mesh` (pipeline/cli.py registers it).
 
 Reads RUN/train/point_cloud.ply (the file the train stage's artifact names) and writes one
 export beside the run's stages, in RUN/export/, or where --out says. Never overwrites an
@@ -18,16 +18,18 @@ import numpy as np
 import typer
 from rich.markup import escape
 
-from pipeline.console import console
+from runtime.console import console
 from runfs.errors import PanoError
 
-EXTENSIONS = {"ply": ".ply", "splat": ".splat", "spz": ".spz", "mesh": ".ply"}
+EXTENSIONS = {"ply": ".ply", "splat": ".splat", "spz": ".spz", "sog": ".sog", "html": ".html", "mesh": ".ply"}
 
 
 class ExportFormat(str, Enum):
     ply = "ply"
     splat = "splat"
     spz = "spz"
+    sog = "sog"
+    html = "html"
     mesh = "mesh"
 
 
@@ -89,8 +91,14 @@ def output_paths(run: Path, fmt: str, y_up: bool, out: Path | None) -> list[Path
         if suffix not in (".ply", ".glb"):
             raise PanoError(path, "a mesh is written as .ply and .glb: --out must end in .ply or .glb")
         return [path.with_suffix(".ply"), path.with_suffix(".glb")]
+    if fmt == "sog" and path.name.lower() == "meta.json":  # unbundled: meta.json, its textures beside it
+        from export.sog import SOG_FILES
+
+        return [path.parent / name for name in SOG_FILES]
     if suffix != EXTENSIONS[fmt]:
-        raise PanoError(path, f"--format {fmt} writes a {EXTENSIONS[fmt]} file: --out must end in {EXTENSIONS[fmt]}")
+        also = " (or name a meta.json: the textures go beside it)" if fmt == "sog" else ""
+        raise PanoError(path, f"--format {fmt} writes a {EXTENSIONS[fmt]} file: --out must end in "
+                              f"{EXTENSIONS[fmt]}{also}")
     return [path]
 
 
@@ -147,10 +155,53 @@ def build_mesh(g, run: Path, source: str, height: int, depth: int, max_points: i
     return mesh
 
 
+def write_sog_targets(targets: list[Path], g, iterations: int) -> list[Path]:
+    """Write the SOG of `g`: one .sog bundle, or meta.json and its textures (the files written)."""
+    from export.sog import sog_encode, zip_bytes
+    from runfs.fsutil import atomic_write
+
+    try:
+        files = sog_encode(g, iterations=iterations)
+    except ValueError as e:
+        raise PanoError(targets[0], str(e)) from None
+    shn = json.loads(files["meta.json"]).get("shN")
+    if shn:
+        console.print(f"sog: SH palette of {shn['count']} entries in {files.seconds:.1f} s", soft_wrap=True)
+    if len(targets) == 1:
+        data = zip_bytes(files)
+        atomic_write(targets[0], lambda tmp: tmp.write_bytes(data))
+        return targets
+    written = [t for t in targets if t.name in files]
+    for t in sorted(written, key=lambda t: t.name == "meta.json"):  # meta.json last: it names the rest
+        atomic_write(t, lambda tmp, b=files[t.name]: tmp.write_bytes(b))
+    return written
+
+
+def page_camera(run: Path, g, y_up: bool) -> tuple[dict | None, str | None]:
+    """The HTML page's first view: at the first training camera, level, looking along the room
+    (first-person), or (None, why not)."""
+    from export.transform import y_up_points
+    from viewer.data import look_along_room
+
+    poses, why = scene_cameras(run)
+    if not poses:
+        return None, why or "the run's scene has no training views"
+    eye = np.asarray(poses[0], dtype=np.float64)[:3, 3]
+    means = g.means.detach().cpu().double().numpy()
+    if y_up:  # `g` is rotated already; look_along_room works in pano-pipe's y-down world, as the poses
+        means = y_up_points(means)
+    fwd = look_along_room(eye, means)
+    if y_up:
+        eye, fwd = y_up_points(eye), y_up_points(fwd)
+    return {"eye": eye.tolist(), "target": (eye + 0.5 * fwd).tolist(), "mode": "walk", "fovy": 70.0}, None
+
+
 def export_command(
     run: RunArg,
     format: Annotated[ExportFormat, typer.Option("--format", "-f", help="ply (standard 3DGS), splat (antimatter15), "
-                                                 "spz (Niantic), or mesh (coloured surface, .ply + .glb).",
+                                                 "spz (Niantic), sog (PlayCanvas, WebP textures in a zip), "
+                                                 "html (one self-contained viewer page), or mesh (coloured "
+                                                 "surface, .ply + .glb).",
                                                  case_sensitive=False)] = ExportFormat.ply,
     y_up: Annotated[bool, typer.Option("--y-up", help="Rotate the world 180° about x: y up, z back "
                                        "(pano-pipe's world is y down).")] = False,
@@ -172,8 +223,11 @@ def export_command(
         "--glb-axes", case_sensitive=False,
         help="mesh: axes of the .glb: y-up (glTF's, so glTF viewers show the room upright) or pano-pipe "
              "(y down, as the run and the .ply).")] = GlbAxes.y_up,
+    sog_iterations: Annotated[int, typer.Option(
+        "--sog-iterations", min=0, max=100,
+        help="sog: k-means iterations of the SH palette (more: closer view-dependent colour, slower).")] = 10,
 ) -> None:
-    """Export a run's trained Gaussians (.ply / .splat / .spz) or a coloured mesh of the room."""
+    """Export a run's trained Gaussians (.ply / .splat / .spz / .sog / an .html page) or a room mesh."""
     from export.fileio import check_writable
     from runfs.fsutil import atomic_write
     from runfs.paths import open_run_folder
@@ -214,13 +268,26 @@ def export_command(
             from export.splat import write_splat
 
             atomic_write(targets[0], lambda tmp: write_splat(tmp, gg))
-        else:
+        elif fmt == "spz":
             from export.spz import write_spz
 
             try:
                 atomic_write(targets[0], lambda tmp: write_spz(tmp, gg, rub=y_up))
             except ValueError as e:
                 raise PanoError(targets[0], str(e)) from None
-        console.print(f"{fmt}: {len(g)} Gaussians", soft_wrap=True)
+        elif fmt == "sog":
+            targets = write_sog_targets(targets, gg, sog_iterations)
+        else:
+            from export.html import write_html
+
+            camera, why = page_camera(Path(run), gg, y_up)
+            if camera is None:
+                console.print(f"[yellow]note:[/] {escape(why)}; the page starts outside the model",
+                              soft_wrap=True)
+            up = (0.0, 1.0, 0.0) if y_up else (0.0, -1.0, 0.0)
+            atomic_write(targets[0], lambda tmp: write_html(tmp, gg, camera=camera, up=up,
+                                                            title=f"{Path(run).resolve().name} (pano-pipe)"))
+        size = sum(t.stat().st_size for t in targets)
+        console.print(f"{fmt}: {len(g)} Gaussians, {size / 1e6:.2f} MB", soft_wrap=True)
     for t in targets:
         console.print(f"[bold]wrote:[/] {escape(str(t))}", soft_wrap=True)

@@ -16,8 +16,9 @@
    close_holes), and the
    degenerate (zero-height) faces the patches can leave split away exactly (`split_degenerate`),
    so the room comes out watertight unless an opening is larger (docs/export.md). Coincident
-   vertices are welded into one (`weld_coincident`): trimesh merges them on load and open3d
-   does not, and both must see the closed surface the export claims.
+   vertices are welded into one (`weld_coincident`) unless the surface touches itself there
+   (then they are set 10 µm apart): trimesh merges them on load and open3d does not, and both
+   must see the closed surface the export claims.
 5. Colour: each vertex takes the colour of its nearest input point.
 """
 
@@ -292,22 +293,91 @@ def _collapse_short_edges(v: np.ndarray, f: np.ndarray, length: float) -> np.nda
 
 #: Vertices closer than this in every coordinate are one (trimesh merges at 1e-8 on load).
 WELD_DECIMALS = 8
+#: How far apart (metres) the copies of a vertex where the surface touches itself are set.
+PINCH_OFFSET_M = 1e-5
 
 
-def weld_coincident(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """One vertex per position (rounded to WELD_DECIMALS), the faces that then repeat a vertex or
-    another face dropped. Readers merge coincident vertices on load (trimesh by default) or count
-    them as separate (open3d): welded, both see the same surface, and the watertight claim holds
-    for each."""
-    keys = np.round(np.asarray(vertices, dtype=np.float64), WELD_DECIMALS)
-    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-    order = np.argsort(first)  # kept vertices in their original order
+def _drop_folds(f: np.ndarray) -> np.ndarray:
+    """Faces on the same three vertices: a pair wound oppositely is a zero-volume fold (two sides
+    of one triangle) and goes whole; faces wound alike are one face counted twice, kept once."""
+    rot = np.argmin(f, axis=1)[:, None]
+    canon = np.take_along_axis(f, (rot + np.arange(3)) % 3, axis=1)  # smallest vertex first, same winding
+    flip = canon[:, 1] > canon[:, 2]
+    key = np.where(flip[:, None], canon[:, [0, 2, 1]], canon)  # the same for both windings
+    _, group, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    group = group.reshape(-1)
+    ups = np.bincount(group, weights=(~flip).astype(np.float64), minlength=len(count))
+    net = (2 * ups - count)[group]  # faces one way minus the other: folds cancel in pairs
+    wanted = np.flatnonzero((net != 0) & (flip == (net < 0)))  # the winding left over
+    _, firsts = np.unique(group[wanted], return_index=True)  # its first face, once
+    keep = np.zeros(len(f), dtype=bool)
+    keep[wanted[firsts]] = True
+    return f[keep]
+
+
+def _merge(v: np.ndarray, faces: np.ndarray, group: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices of one group merged into the group's first (original order kept), faces that then
+    repeat a vertex dropped, folds removed, unused vertices dropped."""
+    _, first, inverse = np.unique(group, return_index=True, return_inverse=True)
+    order = np.argsort(first)
     rank = np.empty_like(order)
     rank[order] = np.arange(len(order))
     f = rank[inverse.reshape(-1)][faces]
-    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
-    _, once = np.unique(np.sort(f, axis=1), axis=0, return_index=True)
-    return np.asarray(vertices, dtype=np.float64)[first[order]], f[np.sort(once)]
+    f = _drop_folds(f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])])
+    v = v[first[order]]
+    used = np.zeros(len(v), dtype=bool)
+    used[f.reshape(-1)] = True
+    if not used.all():  # a vertex only a fold used
+        v, f = v[used], (np.cumsum(used) - 1)[f]
+    return v, f
+
+
+def _non_manifold(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Vertices on an edge of more than two faces or where two fans of faces meet (open3d's test)."""
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(f.astype(np.int32)))
+    edges = np.asarray(m.get_non_manifold_edges(allow_boundary_edges=True)).reshape(-1)
+    return np.unique(np.concatenate([edges, np.asarray(m.get_non_manifold_vertices()).reshape(-1)]))
+
+
+def weld_coincident(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One vertex per position (rounded to WELD_DECIMALS), unless the surface touches itself there.
+
+    Readers merge coincident vertices on load (trimesh by default) or count them as separate
+    (open3d), and both must see the surface the export describes. Copies of a vertex that split
+    the surface for nothing are merged (the faces that then repeat a vertex dropped, a face
+    counted twice kept once, a fold — the same face both ways round — removed). Where merging
+    would make an edge of more than two faces or a vertex where two fans of faces meet (pymeshlab's
+    non-manifold repair makes such copies where two sheets touch), the copies stay apart, each
+    moved PINCH_OFFSET_M into its own faces: both readers then see the same two-manifold surface,
+    and the watertight claim holds for each (issue 40)."""
+    v0 = np.asarray(vertices, dtype=np.float64)
+    f0 = np.asarray(faces, dtype=np.int64)
+    _, group = np.unique(np.round(v0, WELD_DECIMALS), axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    sizes = np.bincount(group)
+    if (sizes == 1).all():
+        return _merge(v0, f0, group)
+    # which groups merging would pinch: their merged vertex is non-manifold
+    v1, f1 = _merge(v0, f0, group)
+    _, first = np.unique(group, return_index=True)
+    pinched_pos = {tuple(np.round(p, WELD_DECIMALS)) for p in v1[_non_manifold(v1, f1)]}
+    pinched = np.array([sizes[g] > 1 and tuple(np.round(v0[first[g]], WELD_DECIMALS)) in pinched_pos
+                        for g in range(len(sizes))])
+    if not pinched.any():
+        return v1, f1
+    split = pinched[group]
+    own = np.where(split, len(sizes) + np.arange(len(v0)), group)  # a pinched copy is its own group
+    v = v0.copy()
+    idx = np.flatnonzero(split)
+    centroid = np.zeros((len(v0), 3))
+    np.add.at(centroid, f0.reshape(-1), np.repeat(v0[f0].mean(1), 3, axis=0))
+    deg = np.bincount(f0.reshape(-1), minlength=len(v0))
+    inward = centroid[idx] / np.maximum(deg[idx], 1)[:, None] - v0[idx]
+    norm = np.linalg.norm(inward, axis=1, keepdims=True)
+    v[idx] += PINCH_OFFSET_M * inward / np.maximum(norm, 1e-30)
+    return _merge(v, f0, np.unique(own, return_inverse=True)[1].reshape(-1))
 
 
 def mesh_topology(vertices: np.ndarray, faces: np.ndarray) -> dict:

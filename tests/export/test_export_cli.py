@@ -14,7 +14,8 @@ from gaussians.ply import load_ply
 
 
 @pytest.mark.parametrize("fmt,name", [("ply", "point_cloud.ply"), ("splat", "point_cloud.splat"),
-                                      ("spz", "point_cloud.spz")])
+                                      ("spz", "point_cloud.spz"), ("sog", "point_cloud.sog"),
+                                      ("html", "point_cloud.html")])
 def test_export_writes_the_default_file_and_refuses_to_overwrite(run_copy, capsys, fmt, name):
     code, out = run_cli(["export", run_copy, "--format", fmt], capsys)
     assert code == 0, out
