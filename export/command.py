@@ -252,9 +252,14 @@ def export_command(
             axes = replace(mesh, vertices=y_up_points(mesh.vertices)) if up else mesh
             atomic_write(t, lambda tmp, m=axes: write_mesh(tmp, m))  # tmp keeps t's suffix
         s = mesh.stats
-        closed = "watertight" if s.get("watertight") else (
-            f"{s.get('boundary_loops', '?')} hole(s) left open, the largest "
-            f"{(s.get('holes_across_m') or [0])[0]:.2f} m across (--mesh-max-hole)")
+        if s.get("watertight"):
+            closed = "watertight"
+        elif s.get("closed"):  # every edge between two faces, but faces cross (flat hole patches do)
+            closed = (f"closed, but {s.get('self_intersecting_faces')} faces cross another: not watertight "
+                      f"for readers that reject self-intersection (open3d)")
+        else:
+            closed = (f"{s.get('boundary_loops', '?')} hole(s) left open, the largest "
+                      f"{(s.get('holes_across_m') or [0])[0]:.2f} m across (--mesh-max-hole)")
         console.print(f"mesh: {s['vertices']} vertices, {s['faces']} faces from {s['points']} points "
                       f"({s['source']}; {closed}); .glb {'y up' if glb_y_up else 'y down'}, "
                       f".ply {'y up' if y_up else 'y down'}", soft_wrap=True)

@@ -15,10 +15,12 @@
    (its boundary's bounding-box diagonal) closed by a flat triangulated patch (pymeshlab
    close_holes), and the
    degenerate (zero-height) faces the patches can leave split away exactly (`split_degenerate`),
-   so the room comes out watertight unless an opening is larger (docs/export.md). Coincident
+   so the room comes out closed unless an opening is larger (docs/export.md). Coincident
    vertices are welded into one (`weld_coincident`) unless the surface touches itself there
    (then they are set 10 µm apart): trimesh merges them on load and open3d does not, and both
-   must see the closed surface the export claims.
+   must see the surface the export describes. `mesh_topology` says whether it is closed (every
+   edge between two faces) and whether faces cross (flat patches can cut nearby surface);
+   only both together are called watertight.
 5. Colour: each vertex takes the colour of its nearest input point.
 """
 
@@ -336,7 +338,8 @@ def _non_manifold(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     """Vertices on an edge of more than two faces or where two fans of faces meet (open3d's test)."""
     import open3d as o3d
 
-    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(f.astype(np.int32)))
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v),
+                                  o3d.utility.Vector3iVector(f.astype(np.int32)))
     edges = np.asarray(m.get_non_manifold_edges(allow_boundary_edges=True)).reshape(-1)
     return np.unique(np.concatenate([edges, np.asarray(m.get_non_manifold_vertices()).reshape(-1)]))
 
@@ -380,15 +383,32 @@ def weld_coincident(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray
     return _merge(v, f0, np.unique(own, return_inverse=True)[1].reshape(-1))
 
 
+def self_intersecting_faces(vertices: np.ndarray, faces: np.ndarray) -> int:
+    """How many faces cross another (pymeshlab's test: a second on the demo mesh, where open3d's
+    takes minutes)."""
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.asarray(vertices, dtype=np.float64),
+                               face_matrix=np.asarray(faces, dtype=np.int32)))
+    ms.compute_selection_by_self_intersections_per_face()
+    return int(ms.current_mesh().selected_face_number())
+
+
 def mesh_topology(vertices: np.ndarray, faces: np.ndarray) -> dict:
-    """What a reader checks first: watertight (trimesh's test), open boundary loops and how far
-    across each is (m, the largest ten), Euler number, degenerate faces."""
+    """What a reader checks first: closed (trimesh's is_watertight: every edge between exactly two
+    faces), faces that cross another (open3d's is_watertight also requires none), watertight (both),
+    open boundary loops and how far across each is (m, the largest ten), Euler number, degenerate
+    faces."""
     import trimesh
 
     tm = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
     loops = boundary_loops(faces)
     across = sorted((float(np.linalg.norm(np.ptp(vertices[lp], axis=0))) for lp in loops), reverse=True)
-    return {"watertight": bool(tm.is_watertight), "boundary_loops": len(loops),
+    closed = bool(tm.is_watertight)
+    crossing = self_intersecting_faces(vertices, faces) if closed else None
+    return {"closed": closed, "self_intersecting_faces": crossing, "watertight": closed and crossing == 0,
+            "boundary_loops": len(loops),
             "holes_across_m": [round(x, 3) for x in across[:10]], "euler_number": int(tm.euler_number),
             "degenerate_faces": int((_heights(vertices, faces) < DEGENERATE_HEIGHT_M).sum())}
 

@@ -256,7 +256,7 @@ def print_run_summary(engine, scene_arg: Path, finished: list[str], flags: str =
         console.print("next steps:")
         for command, what in ((f"pano-pipe report {scene_q}{flags}", "the HTML report: metrics, timings, settings"),
                               (f"pano-pipe view {scene_q} --out {out_q}", "the model in the browser"),
-                              (f"pano-pipe export {out_q} --format ply", "for other viewers (also splat, spz, mesh)")):
+                              (f"pano-pipe export {out_q} --format ply", "for other viewers (also splat, spz, sog, html, mesh)")):
             console.print(escape(f"  {command}    # {what}"), soft_wrap=True)
 
 

@@ -22,7 +22,9 @@ def _run_poses(scene: Path, run: Path, **params) -> dict:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("views,walk", [(8, False), (13, False), (8, True)], ids=["8-views", "13-views", "chain-8"])
+# 13 views over the same rooms: tests/poses/test_plain_floor.py's capture (plain floor, the harder
+# case) covers that count; the textured 13 are the bench's (`pano-pipe bench poses`)
+@pytest.mark.parametrize("views,walk", [(8, False), (8, True)], ids=["8-views", "chain-8"])
 def test_capture_over_three_rooms_placed_by_default_within_5cm_and_1_degree(tmp_path, views, walk):
     """Simulated captures with the hard parts of real ones (sfm.bench): three rooms seen from one
     another only through openings, bare walls, noise, exposure, a tripod, neighbours 1-6 m apart;
