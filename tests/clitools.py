@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 from pipeline import cli
 
@@ -63,3 +64,11 @@ def run_on_full_disk(args, budget: int, cwd) -> tuple[int, str, str]:
                           cwd=cwd, preexec_fn=limit, capture_output=True, text=True, timeout=300,
                           env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
     return proc.returncode, proc.stdout, proc.stderr
+
+
+def shared_data() -> Path:
+    """../shared/data beside the project root (a worktree may sit one folder deeper)."""
+    for parent in Path(__file__).resolve().parents[1:4]:
+        if (parent / "shared" / "data").is_dir():
+            return parent / "shared" / "data"
+    return Path(__file__).resolve().parents[2] / "shared" / "data"

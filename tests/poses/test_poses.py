@@ -15,17 +15,9 @@ from pipeline.registry import build_registry
 from schemas.scene_loader import load_scene
 from sfm.bench import unposed_copy
 from sfm.frame import pose_errors, rotation_angle_deg
-from tests.clitools import invoke
+from tests.clitools import invoke, shared_data
 
-def _shared_data() -> Path:
-    """../shared/data beside the project root (a worktree may sit one folder deeper)."""
-    for parent in Path(__file__).resolve().parents[2:5]:
-        if (parent / "shared" / "data").is_dir():
-            return parent / "shared" / "data"
-    return Path(__file__).resolve().parents[3] / "shared" / "data"
-
-
-ZIND = _shared_data() / "zind_pair"
+ZIND = shared_data() / "zind_pair"
 #: The cuboid scenes of the COLMAP tests: textured, furnished, shaded, with fine detail, no capture effects.
 COLMAP_EFFECTS = "texture,furniture,shading,aa,detail"
 

@@ -28,19 +28,11 @@ from sfm.upright_pair import (
     features,
     putative_matches,
 )
-from tests.clitools import invoke
+from tests.clitools import invoke, shared_data
 
 
-def _shared_data() -> Path:
-    """../shared/data beside the project root (a worktree may sit one folder deeper)."""
-    for parent in Path(__file__).resolve().parents[2:5]:
-        if (parent / "shared" / "data").is_dir():
-            return parent / "shared" / "data"
-    return Path(__file__).resolve().parents[3] / "shared" / "data"
-
-
-ZIND = _shared_data() / "zind_pair"
-FLAT = _shared_data() / "openmvg_flat"
+ZIND = shared_data() / "zind_pair"
+FLAT = shared_data() / "openmvg_flat"
 
 
 def _run_poses(scene: Path, run: Path, **params) -> PosesOutput:
