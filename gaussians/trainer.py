@@ -79,21 +79,55 @@ def _all_finite(tensors: list[torch.Tensor]) -> torch.Tensor:
 
 
 class _Laps:
-    """Adds the seconds since the previous lap to `parts[name]`; does nothing when `parts` is None."""
+    """Adds the seconds since the previous lap to `parts[name]`; does nothing when `parts` is None.
 
-    def __init__(self, parts: dict[str, float] | None, device: torch.device):
+    On a GPU the laps are CUDA events on the current stream (no host sync): the seconds are the
+    device timeline's, which is also where launch overhead shows (a device waiting for the host),
+    and they are added to `parts` when `PendingLaps.settle` runs (at the log, which syncs anyway)."""
+
+    def __init__(self, parts: dict[str, float] | None, device: torch.device, pending: PendingLaps):
         self.parts = parts
-        self.cuda = device.type == "cuda"
-        self.t = time.perf_counter() if parts is not None else 0.0
+        self.pending = pending if device.type == "cuda" and parts is not None else None
+        self.t = 0.0
+        if parts is None:
+            return
+        if self.pending is not None:
+            self.t = self.pending.event()
+        else:
+            self.t = time.perf_counter()
 
     def __call__(self, name: str) -> None:
         if self.parts is None:
             return
-        if self.cuda:
-            torch.cuda.synchronize()
-        now = time.perf_counter()
-        self.parts[name] = self.parts.get(name, 0.0) + now - self.t
+        if self.pending is not None:
+            now = self.pending.event()
+            self.pending.laps.append((name, self.t, now))
+        else:
+            now = time.perf_counter()
+            self.parts[name] = self.parts.get(name, 0.0) + now - self.t
         self.t = now
+
+
+class PendingLaps:
+    """CUDA-event laps not yet read (reading one waits for the device)."""
+
+    def __init__(self):
+        self.laps: list[tuple[str, torch.cuda.Event, torch.cuda.Event]] = []
+
+    @staticmethod
+    def event():
+        e = torch.cuda.Event(enable_timing=True)
+        e.record()
+        return e
+
+    def settle(self, parts: dict[str, float] | None) -> None:
+        if not self.laps or parts is None:
+            self.laps.clear()
+            return
+        self.laps[-1][2].synchronize()
+        for name, start, end in self.laps:
+            parts[name] = parts.get(name, 0.0) + start.elapsed_time(end) / 1000.0
+        self.laps.clear()
 
 
 @dataclass
@@ -139,10 +173,10 @@ class Trainer:
         #: Extra identity a checkpoint must match (e.g. a hash of the initial model and images).
         self.extra_fingerprint = ""
         self._in_step = False
-        #: Seconds spent in each part of the step, summed over steps (`pano-pipe bench train`);
-        #: timed on the CPU (free there), None = not timed (a CUDA step would wait for the
-        #: device at every part; set it to {} to time one anyway).
-        self.part_seconds: dict[str, float] | None = {} if self.device.type == "cpu" else None
+        #: Seconds spent in each part of the step, summed over steps (`pano-pipe bench train`):
+        #: the CPU's clock, or CUDA events on a GPU (read at each log); None = not timed.
+        self.part_seconds: dict[str, float] | None = {}
+        self._pending_laps = PendingLaps()
         self._turn_maps: dict[tuple[int, int], TurnMaps] = {}
 
     def new_appearance(self) -> Appearance | None:
@@ -207,7 +241,7 @@ class Trainer:
         view = self._next_view()
         if cfg.turns.random_turns and getattr(view.camera, "kind", None) == "equirect":
             view = self._turned(view)
-        lap = _Laps(self.part_seconds, self.device)
+        lap = _Laps(self.part_seconds, self.device, self._pending_laps)
         bg = self._bg
         if cfg.render.random_background:
             bg = torch.rand(3, generator=self.gen, dtype=self._bg.dtype).to(self.device)
@@ -306,6 +340,7 @@ class Trainer:
 
     def _log(self, info: dict) -> None:
         """One record of plain numbers (the host syncs with the device here, every log_every steps)."""
+        self._pending_laps.settle(self.part_seconds)
         rec = {
             "iteration": info["iteration"], "loss": plain_number(info["loss"]), "l1": plain_number(info["l1"]),
             "ssim": plain_number(info["ssim"]), "layout": plain_number(info["layout"]), "psnr": plain_number(info["psnr"]),

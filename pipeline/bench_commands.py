@@ -88,6 +88,9 @@ def bench_train_command(
     sets: Annotated[Optional[list[str]], typer.Option(
         "--set", help="STAGE.PARAM=VALUE for this checkout only (repeatable): e.g. the defaults of the older "
                       "checkout given to --against, so that both train the same way.")] = None,
+    upstream: Annotated[Optional[Path], typer.Option(
+        help="A run folder of SCENE with the stages before train done (e.g. on a machine with open3d): "
+             "each repeat trains from a copy of it.")] = None,
     out: BenchOutOpt = BENCH_OUT,
 ) -> None:
     """Iterations/s, seconds per part of the step and held-out PSNR of a training preset through `run all`."""
@@ -100,7 +103,8 @@ def bench_train_command(
     if preset not in ("fast", "paper", "quality"):
         raise PanoError("--preset", f"must be fast, paper or quality, got {preset!r}")
     bench_train(scene, device, preset, height, out / "bench_train.md", out / "bench_train.json",
-                iterations=iterations, against=against, repeats=repeats, this_overrides=overrides)
+                iterations=iterations, against=against, repeats=repeats, this_overrides=overrides,
+                upstream=upstream)
 
 
 @bench_app.command("pipeline")

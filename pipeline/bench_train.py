@@ -8,7 +8,8 @@ worktree of an older commit) in the same run, alternately with this one, and pri
 ratio: absolute times on a shared machine vary from run to run, their ratio far less. Each
 checkout runs in its own subprocess, importing its own code (and compiling its own kernel).
 The stages before `train` run once per checkout; every repeat copies their run folder and
-runs `train` and `evaluate` from there.
+runs `train` and `evaluate` from there. ``--upstream RUN`` gives that folder instead (the stages
+before train run elsewhere, e.g. where open3d is installed, and the GPU machine only trains).
 """
 
 from __future__ import annotations
@@ -54,7 +55,8 @@ print("BENCH-RESULT " + json.dumps({"wall": wall, **art}))
 
 
 def _run_in(checkout: Path, scene: Path, run_dir: Path, config: dict, until: str | None) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(checkout))
+    # the checkout first; what the caller's PYTHONPATH adds (e.g. carried wheels) stays reachable
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(checkout), os.environ.get("PYTHONPATH")])))
     proc = subprocess.run([sys.executable, "-c", _WORKER, str(scene), str(run_dir), json.dumps(config), until or ""],
                           cwd=checkout, env=env, capture_output=True, text=True)
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("BENCH-RESULT ")]
@@ -79,11 +81,15 @@ def _summary(res: dict) -> dict:
 
 def bench_train(scene: Path | None, device: str, preset: str, height: int, out_md: Path, out_json: Path,
                 iterations: int | None = None, against: Path | None = None, repeats: int = 1,
-                this_overrides: dict | None = None, log=print) -> dict:
+                this_overrides: dict | None = None, upstream: Path | None = None, log=print) -> dict:
     if device == "cuda" and not torch.cuda.is_available():
         raise PanoError("--device", "cuda asked for, but torch sees no CUDA device here (docs/gpu.md)")
     if against is not None and not (against / "pipeline" / "engine.py").is_file():
         raise PanoError(against, "not a pano-pipe checkout (no pipeline/engine.py)")
+    if upstream is not None and (against is not None or scene is None):
+        raise PanoError("--upstream", "needs the scene it was made from and no --against")
+    if upstream is not None and not (upstream / "align" / "artifact.json").is_file():
+        raise PanoError(upstream, "not a run folder with the stages before train (no align/artifact.json)")
     here = Path(__file__).resolve().parents[1]
     checkouts = {"this": here} if against is None else {"this": here, "other": against.resolve()}
     train_cfg = {"preset": preset, "device": device, "height": height}
@@ -105,6 +111,9 @@ def bench_train(scene: Path | None, device: str, preset: str, height: int, out_m
             simulate.generate_scene(scene, preset="demo", height=height, with_layout=True, with_depth=True)
         prepared = {}
         for name, co in checkouts.items():  # the stages before train, once per checkout
+            if upstream is not None:
+                prepared[name] = upstream
+                continue
             prepared[name] = Path(tmp) / f"upstream-{name}"
             log(f"bench train: {name} ({co}): the stages before train")
             _run_in(co, scene, prepared[name], configs[name], "align")

@@ -5,22 +5,36 @@
 #                          (cuda backend vs cpp on the hard cases: images 1e-5, gradients 1e-4)
 #   bench_render_gpu.*     pano-pipe bench render --device cuda
 #   bench_train.*          pano-pipe bench train --device cuda (paper preset, demo scene, 512x1024)
-# Needs torch with CUDA, triton, pytest and the project installed (docs/gpu.md).
+#   profile_step.*         scripts/profile_train_step.py: a step's kernels and host time (with UPSTREAM)
+# Needs torch with CUDA, triton, pytest and the project (installed, or on PYTHONPATH: docs/gpu.md).
+# Switches: BENCH_KERNELS=0 skips the compile report (it needs no GPU: run it elsewhere);
+# SCENE and UPSTREAM (a run folder of SCENE with the stages before train done, e.g. on a machine
+# with open3d) make bench train and the profile train from there instead of preparing the demo.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
 [ -x "$PY" ] || PY=python3
-PANO=${PANO:-$(dirname "$PY")/pano-pipe}
-[ -x "$PANO" ] || PANO=pano-pipe
+pano() {  # the installed entry point, else the module (the project on PYTHONPATH)
+    local exe; exe=$(dirname "$PY")/pano-pipe
+    if [ -x "$exe" ]; then "$exe" "$@"; else "$PY" -m pipeline.cli "$@"; fi
+}
 OUT=${OUT:-docs/gpu_check}
 mkdir -p "$OUT"
 "$PY" -c "import sys, torch; sys.exit(0 if torch.cuda.is_available() else 'gpu-check: torch sees no CUDA device')"
 "$PY" -c "import torch; print(torch.cuda.get_device_name(), 'torch', torch.__version__)" | tee "$OUT/device.txt"
 status=0
-"$PANO" bench kernels --out "$OUT" 2>&1 | tee "$OUT/bench_kernels.log" || status=1
+if [ "${BENCH_KERNELS:-1}" != 0 ]; then
+    pano bench kernels --out "$OUT" 2>&1 | tee "$OUT/bench_kernels.log" || status=1
+fi
 # the tests first: a wrong kernel makes its timings meaningless
 "$PY" -m pytest -q -p no:cacheprovider -m cuda tests/splatting tests/train 2>&1 | tee "$OUT/tests.txt" || status=1
-"$PANO" bench render --device cuda --out "$OUT" 2>&1 | tee "$OUT/bench_render.log" || status=1
-"$PANO" bench train --device cuda --out "$OUT" 2>&1 | tee "$OUT/bench_train.log" || status=1
+pano bench render --device cuda --out "$OUT" 2>&1 | tee "$OUT/bench_render.log" || status=1
+if [ -n "${UPSTREAM:-}" ]; then
+    "$PY" scripts/profile_train_step.py "$SCENE" "$UPSTREAM" --device cuda --out "$OUT" 2>&1 \
+        | tee "$OUT/profile_step.log" || status=1
+fi
+prepared=()
+[ -n "${UPSTREAM:-}" ] && prepared=("$SCENE" --upstream "$UPSTREAM")
+pano bench train "${prepared[@]}" --device cuda --out "$OUT" 2>&1 | tee "$OUT/bench_train.log" || status=1
 echo "gpu-check: outputs in $OUT (status $status)"
 exit $status
