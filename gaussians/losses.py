@@ -218,7 +218,14 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_l1: float = 0.
                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(λ1·L1 + λ2·(1−SSIM), L1, SSIM) of [H,W,3] images, over `mask`'s valid pixels if given.
     `weight` ([H,W], >= 0) weighs the per-pixel L1 and SSIM maps (e.g. each pixel's solid angle,
-    `solid_angle_weight`); the means are then weighted means over the valid pixels."""
+    `solid_angle_weight`); the means are then weighted means over the valid pixels.
+
+    On a GPU (or where ``FUSED_ON_CPU`` is set: the Triton interpreter, in tests) the same loss
+    runs as five fused kernels (splatting/photometric_triton.py) instead of ~90 operations."""
+    if _fused(pred, gt, lambda_dssim):
+        from splatting import photometric_triton
+
+        return photometric_triton.photometric_loss(pred, gt, lambda_l1, lambda_dssim, mask=mask, weight=weight)
     if weight is None:
         l1 = l1_loss(pred, gt, mask)
         s = ssim(pred, gt, mask=mask) if lambda_dssim > 0 else pred.new_tensor(1.0)
@@ -227,6 +234,24 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_l1: float = 0.
         l1 = ((pred - gt).abs().mean(-1) * w).sum() / w.sum().clamp_min(1e-12)
         s = ssim(pred, gt, mask=mask, weight=weight) if lambda_dssim > 0 else pred.new_tensor(1.0)
     return lambda_l1 * l1 + lambda_dssim * (1.0 - s), l1, s
+
+
+#: Run the fused Triton loss on CPU tensors too (the interpreter; tests count its operations).
+FUSED_ON_CPU = False
+
+
+def _fused(pred: torch.Tensor, gt: torch.Tensor, lambda_dssim: float) -> bool:
+    """Whether photometric_loss takes the fused kernels: [H,W,3] float images on a GPU (SSIM on;
+    without it, L1 alone is a few operations anyway) and triton importable."""
+    if lambda_dssim <= 0 or pred.ndim != 3 or pred.shape[-1] != 3 or gt.shape != pred.shape:
+        return False
+    if pred.dtype not in (torch.float32, torch.float64) or gt.dtype != pred.dtype:
+        return False
+    if not (pred.device.type == "cuda" or (FUSED_ON_CPU and pred.device.type == "cpu")):
+        return False
+    from splatting import photometric_triton
+
+    return photometric_triton.available()
 
 
 def solid_angle_weight(height: int, width: int, dtype=torch.float32, device="cpu") -> torch.Tensor:
