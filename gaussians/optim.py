@@ -11,7 +11,6 @@ from __future__ import annotations
 import math
 
 import torch
-from torch.optim.adam import adam as _torch_adam
 
 from gaussians.model import PARAM_NAMES, Gaussians
 
@@ -39,6 +38,15 @@ class Adam:
         self.step_count = 0
         self.exp_avg: dict[str, torch.Tensor] = {}
         self.exp_avg_sq: dict[str, torch.Tensor] = {}
+        #: the fused kernel's step count, one float32 0-dim tensor per device, always equal to
+        #: step_count (derived from it: rebuilt after a load or a move, refilled at each step)
+        self._steps: dict[torch.device, torch.Tensor] = {}
+
+    def _step_tensor(self, device: torch.device) -> torch.Tensor:
+        t = self._steps.get(device)
+        if t is None:
+            t = self._steps[device] = torch.full((), float(self.step_count), dtype=torch.float32, device=device)
+        return t
 
     def _init_state(self, g: Gaussians) -> None:
         for k in self.lrs:
@@ -53,19 +61,25 @@ class Adam:
         self._init_state(g)
         self.step_count += 1
         b1, b2 = self.betas
+        refilled: set[torch.device] = set()
         for k, lr in self.lrs.items():
             p = getattr(g, k)
             grad = p.grad
             if grad is None:  # as torch.optim.Adam: no gradient, no update (e.g. SH bands not yet in use)
                 continue
             m, v = self.exp_avg[k], self.exp_avg_sq[k]
-            if _fused_ok(p):
-                # torch's fused Adam: one pass over the parameter, its gradient and both moments
-                # instead of eight (the optimiser was ~15 % of a CPU step at 300k Gaussians); the
-                # same update as below to rounding. It adds 1 to the step it is given.
-                steps = [torch.full((), float(self.step_count - 1), dtype=torch.float32, device=p.device)]
-                _torch_adam([p], [grad], [m], [v], [], steps, fused=True, amsgrad=False, beta1=b1,
-                                      beta2=b2, lr=lr, weight_decay=0.0, eps=self.eps, maximize=False)
+            if _fused_ok(p, grad, m, v):
+                # torch's fused Adam kernel, called directly: one pass over the parameter, its
+                # gradient and both moments, one launch per tensor (each has its own lr). The
+                # kernel reads the step (this update's t, bias corrections 1 − β^t) from a
+                # tensor: one per device, set once per step, not one made per tensor.
+                steps = self._step_tensor(p.device)
+                if p.device not in refilled:
+                    steps.fill_(float(self.step_count))
+                    refilled.add(p.device)
+                torch._fused_adam_([p], [grad], [m], [v], [], [steps], lr=lr, beta1=b1, beta2=b2,
+                                   weight_decay=0.0, eps=self.eps, amsgrad=False, maximize=False,
+                                   grad_scale=None, found_inf=None)
                 continue
             bc1 = 1.0 - b1**self.step_count
             bc2 = 1.0 - b2**self.step_count
@@ -104,6 +118,7 @@ class Adam:
         for d in (self.exp_avg, self.exp_avg_sq):
             for k in d:
                 d[k] = d[k].to(device)
+        self._steps = {}
         return self
 
     # -- checkpoints --------------------------------------------------------
@@ -141,11 +156,14 @@ class Adam:
         self.step_count = int(steps)
         self.exp_avg = {k: x.clone() for k, x in m.items()}
         self.exp_avg_sq = {k: x.clone() for k, x in v.items()}
+        self._steps = {}
 
 
-def _fused_ok(p: torch.Tensor) -> bool:
-    """Whether torch's fused Adam kernel takes `p` (CPU and CUDA floating tensors)."""
-    return p.device.type in ("cpu", "cuda") and p.dtype in (torch.float32, torch.float64) and p.is_contiguous()
+def _fused_ok(p: torch.Tensor, *others: torch.Tensor) -> bool:
+    """Whether torch's fused Adam kernel takes `p` with its gradient and moments `others` (CPU
+    and CUDA floating tensors, contiguous, all of one dtype and device)."""
+    return p.device.type in ("cpu", "cuda") and p.dtype in (torch.float32, torch.float64) and p.is_contiguous() \
+        and all(t.dtype == p.dtype and t.device == p.device and t.is_contiguous() for t in others)
 
 
 def _real(x: object) -> bool:

@@ -69,13 +69,22 @@ def scene_extent(points: np.ndarray | torch.Tensor, low: float = 1.0, high: floa
     return float(max(0.5 * np.linalg.norm(hi - lo), 0.1))
 
 
+def _nonfinite_flag(tensors: list[torch.Tensor], one: torch.Tensor | None = None) -> torch.Tensor:
+    """0-dim float32 on the tensors' device: 1.0 when some value of some tensor is not finite,
+    else 0.0. One multi-tensor pass over all of them (AMP's check-and-unscale, by `one`, a
+    float32 1.0 on their device: the values stay as they are), no host sync."""
+    device = tensors[0].device if tensors else None if one is None else one.device
+    found = torch.zeros((), dtype=torch.float32, device=device)
+    if tensors:
+        if one is None:
+            one = torch.ones((), dtype=torch.float32, device=device)
+        torch._amp_foreach_non_finite_check_and_unscale_(tensors, found, one)
+    return found
+
+
 def _all_finite(tensors: list[torch.Tensor]) -> torch.Tensor:
-    """0-dim bool: every value of every tensor finite. One read pass per tensor (min and max
-    are finite exactly when all values are: both propagate NaN), no host sync."""
-    if not tensors:
-        return torch.ones((), dtype=torch.bool)
-    ends = torch.stack([torch.stack(torch.aminmax(t)) for t in tensors])
-    return torch.isfinite(ends).all()
+    """0-dim bool: every value of every tensor finite (no host sync)."""
+    return _nonfinite_flag(tensors) == 0
 
 
 class _Laps:
@@ -132,12 +141,28 @@ class PendingLaps:
 
 @dataclass
 class _Ema:
-    loss: float | None = None
-    psnr: float | None = None
+    """Exponential moving averages of the loss and the PSNR: the first value as it is, then
+    a·new + (1 − a)·old. 0-dim tensors (updated in place, one multi-tensor lerp for both,
+    no host sync) or plain numbers (a checkpoint's; plain numbers updated by plain ones)."""
 
-    def update(self, loss: float, p: float, a: float = 0.4) -> None:
-        self.loss = loss if self.loss is None else a * loss + (1 - a) * self.loss
-        self.psnr = p if self.psnr is None else a * p + (1 - a) * self.psnr
+    loss: float | torch.Tensor | None = None
+    psnr: float | torch.Tensor | None = None
+
+    def update(self, loss, p, a: float = 0.4) -> None:
+        if not (isinstance(loss, torch.Tensor) and isinstance(p, torch.Tensor)):
+            self.loss = loss if self.loss is None else a * loss + (1 - a) * self.loss
+            self.psnr = p if self.psnr is None else a * p + (1 - a) * self.psnr
+            return
+        if self.loss is None or self.psnr is None:
+            # copies: the averages are updated in place, the step's values are returned as they are
+            self.loss, self.psnr = loss.detach().clone(), p.detach().clone()
+            return
+        if not (isinstance(self.loss, torch.Tensor) and isinstance(self.psnr, torch.Tensor)):
+            # a checkpoint's plain numbers: on the device once, then updated in place
+            self.loss = torch.tensor(float(self.loss), dtype=loss.dtype, device=loss.device)
+            self.psnr = torch.tensor(float(self.psnr), dtype=p.dtype, device=p.device)
+        # old + a·(new − old): a·new + (1 − a)·old to rounding
+        torch._foreach_lerp_([self.loss, self.psnr], [loss.detach(), p.detach()], a)
 
 
 class Trainer:
@@ -178,6 +203,7 @@ class Trainer:
         self.part_seconds: dict[str, float] | None = {}
         self._pending_laps = PendingLaps()
         self._turn_maps: dict[tuple[int, int], TurnMaps] = {}
+        self._const_cache: dict[tuple[str, torch.dtype], torch.Tensor] = {}
 
     def new_appearance(self) -> Appearance | None:
         if not self.cfg.appearance.enabled:
@@ -289,10 +315,12 @@ class Trainer:
         on a GPU), the appearance transforms' step, then the parameters kept valid."""
         g = self.g
         grads = [p.grad for p in (getattr(g, k) for k in PARAM_NAMES) if p.grad is not None and p.grad.numel()]
-        finite = _all_finite(grads)
-        self.nonfinite_steps = self.nonfinite_steps + (~finite).long()
+        # one multi-tensor pass for the flag (1.0: some value not finite); counted as a 0-dim
+        # tensor, read only when the log or a checkpoint wants the number
+        found = _nonfinite_flag(grads, self._consts("one", 1.0))
+        self.nonfinite_steps = self.nonfinite_steps + found
         # on the CPU reading the flag costs nothing, and saves a pass over every gradient
-        if self.device.type != "cpu" or not bool(finite):
+        if self.device.type != "cpu" or bool(found):
             for gr in grads:
                 torch.nan_to_num_(gr, nan=0.0, posinf=0.0, neginf=0.0)
         self.opt.step(g)
@@ -301,9 +329,17 @@ class Trainer:
         Adam.zero_grad(g)
         # quaternions: keep them away from zero (the renderer copes, Adam's steps would not)
         qn = torch.linalg.vector_norm(g.quats, dim=-1, keepdim=True)
-        g.quats.copy_(torch.where(qn > 1e-8, g.quats, g.quats.new_tensor([1.0, 0, 0, 0])))
+        torch.where(qn > 1e-8, g.quats, self._consts("unit_quat", (1.0, 0.0, 0.0, 0.0), g.quats.dtype), out=g.quats)
         if self.cfg.optim.max_anisotropy is not None:
             clamp_anisotropy_(g.log_scales, self.cfg.optim.max_anisotropy)
+
+    def _consts(self, name: str, value, dtype=torch.float32) -> torch.Tensor:
+        """A constant tensor on the trainer's device, made once (not copied there at every step)."""
+        key = (name, dtype)
+        t = self._const_cache.get(key)
+        if t is None:
+            t = self._const_cache[key] = torch.tensor(value, dtype=dtype, device=self.device)
+        return t
 
     # -- the loop --------------------------------------------------------------
     def train(self, until: int | None = None,

@@ -11,8 +11,10 @@ from train_helpers import load_views, rooms, small_config
 import splatting
 from gaussians.init import random_points
 from gaussians.losses import ssim
+from gaussians.model import PARAM_NAMES
 from gaussians.optim import Adam
-from gaussians.trainer import Trainer, _all_finite, scene_extent
+from gaussians.trainer import Trainer, _all_finite, _Ema, scene_extent
+from splatting.dispatch_count import DispatchCounter
 
 
 class _Params:
@@ -39,6 +41,122 @@ def test_adam_step_is_the_textbook_update(dtype):
     tol = 1e-6 if dtype == torch.float32 else 1e-12
     assert torch.allclose(p.means.detach(), ref, rtol=0, atol=tol)
     assert torch.allclose(opt.exp_avg["means"], m, atol=tol) and torch.allclose(opt.exp_avg_sq["means"], v, atol=tol)
+
+
+class _Many:
+    """Several tensors with gradients, as Adam reads them from a Gaussians."""
+
+    def __init__(self, shapes, dtype=torch.float32):
+        for k, shape in shapes.items():
+            setattr(self, k, torch.randn(*shape, dtype=dtype, requires_grad=True))
+
+
+def test_adam_step_dispatches_one_kernel_per_tensor():
+    """Issue 35's op budget: the fused kernel called directly, once per tensor, and one shared
+    step-count tensor set once per step (not a tensor made, and a _foreach_add_, per tensor)."""
+    shapes = {"means": (50, 3), "quats": (50, 4), "log_scales": (50, 3), "opacity_logits": (50,), "sh_dc": (50, 3)}
+    g = _Many(shapes)
+    opt = Adam({k: 1e-3 for k in shapes})
+    for step in range(3):
+        for k in shapes:
+            getattr(g, k).grad = torch.randn_like(getattr(g, k))
+        with DispatchCounter() as c:
+            opt.step(g)
+        if step == 0:
+            continue  # the first step makes the moments and the step tensor
+        assert dict(c.ops) == {"_fused_adam_": len(shapes), "fill_": 1}, c.summary()
+    assert opt.step_count == 3 and opt.state_dict()["step_count"] == 3
+    # the step tensor follows step_count through a checkpoint and a move
+    opt2 = Adam({k: 1e-3 for k in shapes})
+    opt2.load_state_dict(opt.state_dict())
+    ref = _Many(shapes)
+    for k in shapes:
+        getattr(ref, k).data.copy_(getattr(g, k).detach())
+        getattr(ref, k).grad = getattr(g, k).grad.clone()
+    opt.step(g)
+    opt2.to("cpu").step(ref)
+    for k in shapes:
+        assert torch.equal(getattr(g, k), getattr(ref, k)), k
+
+
+def test_optimiser_part_of_a_training_step_stays_small(tiny_room):
+    """Trainer._optimiser_step between densifications: the finite check one multi-tensor op, one
+    Adam kernel per tensor; on the CPU the flag is read (one sync), on a GPU never."""
+    views = load_views(tiny_room)
+    g = random_points(300, 0, rooms=rooms(tiny_room))
+    tr = Trainer(g, views, small_config(iterations=10, extent=scene_extent(g.means), densify_from=100,
+                                        densify_until=100, sh_degree_every=0))
+    tr.step()
+    tr.step()
+    for k in PARAM_NAMES:
+        p = getattr(tr.g, k)
+        p.grad = torch.randn_like(p)
+    with torch.no_grad(), DispatchCounter() as c:
+        tr._optimiser_step()
+    n = len(PARAM_NAMES)
+    assert c.ops["_fused_adam_"] == n and c.sync_ops == {"_local_scalar_dense": 1}, c.summary()
+    for gone in ("full", "_foreach_add_", "aminmax", "stack", "isfinite", "nan_to_num_", "_to_copy", "copy_"):
+        assert gone not in c.ops, c.summary()
+    # the check, its counting, the step tensor, the quaternions' fix-up (norm, compare, where)
+    assert c.device_ops <= n + 8, c.summary()
+
+
+@pytest.mark.parametrize("device_type", ["cpu", "cuda"])
+def test_a_nonfinite_gradient_is_zeroed_and_counted(tiny_room, device_type):
+    """Both branches (a GPU's never reads the flag: it always zeroes the non-finite entries,
+    with the device kind faked here, its tensors on the CPU): the other entries still update."""
+    views = load_views(tiny_room)
+    g = random_points(300, 0, rooms=rooms(tiny_room))
+    tr = Trainer(g, views, small_config(iterations=10, extent=scene_extent(g.means), densify_from=100,
+                                        densify_until=100, sh_degree_every=0))
+    tr.step()
+    assert int(tr.nonfinite_steps) == 0
+    tr.device = torch.device(device_type)  # the constants were made on the CPU by the first step
+    before = tr.g.means.detach().clone()
+    for k in PARAM_NAMES:
+        p = getattr(tr.g, k)
+        p.grad = torch.randn_like(p)
+    tr.g.means.grad[7, 1] = float("nan")
+    tr.g.sh_dc.grad[3, 0] = float("inf")
+    moment = tr.opt.exp_avg["means"][7, 1].clone()
+    with torch.no_grad(), DispatchCounter() as c:
+        tr._optimiser_step()
+    assert c.syncs == (1 if device_type == "cpu" else 0), c.summary()
+    assert int(tr.nonfinite_steps) == 1
+    assert all(torch.isfinite(getattr(tr.g, k)).all() for k in PARAM_NAMES)
+    assert torch.allclose(tr.opt.exp_avg["means"][7, 1], 0.9 * moment, rtol=1e-6, atol=0)  # its gradient taken as 0
+    assert bool((tr.g.means.detach() != before).all(dim=1)[torch.arange(300) != 7].all())
+    for k in PARAM_NAMES:
+        p = getattr(tr.g, k)
+        p.grad = torch.randn_like(p)
+    with torch.no_grad():
+        tr._optimiser_step()
+    assert int(tr.nonfinite_steps) == 1  # a finite step counts nothing
+
+
+def test_ema_is_the_same_average_in_one_operation():
+    ema, ref = _Ema(), None
+    g = torch.Generator().manual_seed(3)
+    firsts = []
+    for t in range(6):
+        loss, p = torch.rand((), generator=g), 20 + 10 * torch.rand((), generator=g)
+        firsts.append((loss, loss.clone()))
+        with DispatchCounter() as c:
+            ema.update(loss, p)
+        if t:
+            assert c.device_ops == 1, c.summary()
+        ref = (float(loss), float(p)) if ref is None else \
+            (0.4 * float(loss) + 0.6 * ref[0], 0.4 * float(p) + 0.6 * ref[1])
+        assert float(ema.loss) == pytest.approx(ref[0], rel=1e-6) and float(ema.psnr) == pytest.approx(ref[1], rel=1e-6)
+    assert all(torch.equal(a, b) for a, b in firsts)  # the values given are never changed
+    # a checkpoint's plain numbers: they continue as tensors
+    ema2 = _Ema(loss=0.5, psnr=21.0)
+    ema2.update(torch.tensor(1.0), torch.tensor(11.0))
+    assert float(ema2.loss) == pytest.approx(0.7) and float(ema2.psnr) == pytest.approx(17.0)
+    ema3 = _Ema()
+    ema3.update(0.5, 21.0)
+    ema3.update(1.0, 11.0)
+    assert ema3.loss == pytest.approx(0.7) and ema3.psnr == pytest.approx(17.0)
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf"), None])
