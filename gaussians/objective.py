@@ -19,7 +19,8 @@ import torch
 
 import splatting
 from gaussians.crop_loss import CropResampler, crop_photometric_loss
-from gaussians.losses import layout_loss, photometric_loss, solid_angle_weight
+from gaussians.layout_loss_fn import LayoutRows
+from gaussians.losses import photometric_loss, solid_angle_weight
 from gaussians.model import Gaussians, render
 
 __all__ = ["TrainingObjective", "LossTerms"]
@@ -45,7 +46,7 @@ class TrainingObjective:
         self._resamplers: dict = {}
         self._crops: dict = {}
         self._centres: torch.Tensor | None = None
-        self._layout_rows: tuple[torch.Tensor, ...] | None = None  # cached: finding them syncs
+        self._layout_rows: LayoutRows | None = None  # cached: finding them syncs
 
     def model_changed(self) -> None:
         """The model's rows changed (densification, a checkpoint): find the layout rows again."""
@@ -78,10 +79,11 @@ class TrainingObjective:
                 # the layout Gaussians' rows, anchors and normals change only with densification:
                 # selected once, not by the mask at every step
                 idx = torch.nonzero(g.is_layout).squeeze(1)
-                self._layout_rows = (idx, g.u0[idx], g.normals[idx])
-            idx, u0, normals = self._layout_rows
-            if len(idx):
-                terms.layout = layout_loss(g.means[idx], u0, normals)
+                self._layout_rows = LayoutRows(idx, g.u0[idx], g.normals[idx])
+            rows = self._layout_rows
+            if len(rows):
+                # gaussians.losses.layout_loss(g.means[idx], u0, normals), its gradient in closed form
+                terms.layout = rows.loss(g.means)
                 terms.loss = terms.loss + cfg.loss.lambda_layout * terms.layout
         return terms
 

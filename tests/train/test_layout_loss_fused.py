@@ -1,0 +1,141 @@
+"""The layout loss with its closed-form gradient (gaussians/layout_loss_fn.py) is
+gaussians.losses.layout_loss of the selected rows, value and gradient, in few device operations."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from gaussians.layout_loss_fn import LayoutRows, layout_loss_rows
+from gaussians.losses import layout_loss
+from splatting.dispatch_count import DispatchCounter
+
+
+def _case(n: int, k: int, seed: int, dtype=torch.float64):
+    gen = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=gen, dtype=dtype)
+    idx = torch.randperm(n, generator=gen)[:k]
+    u0 = means[idx] + 0.3 * torch.randn(k, 3, generator=gen, dtype=dtype)
+    normals = torch.randn(k, 3, generator=gen, dtype=dtype)
+    if k >= 8:
+        u0[0] = means[idx[0]]  # μ = u0 exactly: 0/0, value 0 and a zero gradient
+        u0[1] = means[idx[1]]
+        normals[1] = 0.0  # a degenerate normal at μ = u0 too
+        normals[2] = 0.0  # a degenerate normal
+        normals[3] *= 1e150  # huge
+        normals[4] *= 1e-150  # tiny: the norm clamped to 1e-12 as in layout_loss
+        normals[5] *= 1e100  # huge too
+        u0[6] = means[idx[6]] + 1e-14 * torch.randn(3, generator=gen, dtype=dtype)  # inside eps's reach
+        # d ⟂ n exactly: the cosine 0 (the kink of |·|)
+        means[idx[7]] = torch.tensor([2.0, 0.5, 0.25], dtype=dtype)
+        u0[7] = torch.tensor([1.0, 0.5, 0.25], dtype=dtype)
+        normals[7] = torch.tensor([0.0, 3.0, -1.0], dtype=dtype)
+    return means, idx, u0, normals
+
+
+def _reference(means, idx, u0, normals):
+    m = means.detach().clone().requires_grad_(True)
+    val = layout_loss(m[idx], u0, normals)
+    (grad,) = torch.autograd.grad(val, m, allow_unused=True)
+    return val.detach(), torch.zeros_like(m) if grad is None else grad
+
+
+def _fused(means, idx, u0, normals):
+    m = means.detach().clone().requires_grad_(True)
+    val = layout_loss_rows(m, idx, u0, normals)
+    (grad,) = torch.autograd.grad(val, m)
+    return val.detach(), grad
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("k", [1, 3, 17, 200])
+def test_value_and_gradient_are_layout_loss(seed, k):
+    means, idx, u0, normals = _case(300, k, seed)
+    want_v, want_g = _reference(means, idx, u0, normals)
+    got_v, got_g = _fused(means, idx, u0, normals)
+    assert torch.isfinite(got_v) and torch.all(torch.isfinite(got_g))
+    assert abs(float(got_v - want_v)) <= 1e-12 * abs(float(want_v))
+    # per row, relative to the row's gradient (components of one row may cancel)
+    err = torch.linalg.vector_norm(got_g - want_g, dim=-1)
+    scale = torch.linalg.vector_norm(want_g, dim=-1)
+    assert torch.all(err <= 1e-12 * scale + 1e-300), (err / scale.clamp_min(1e-300)).max()
+    outside = torch.ones(len(means), dtype=torch.bool)
+    outside[idx] = False
+    assert torch.all(got_g[outside] == 0)
+
+
+def test_special_rows_value_and_gradient():
+    means, idx, u0, normals = _case(50, 8, 3)
+    for i in range(8):
+        args = (means, idx[i : i + 1], u0[i : i + 1], normals[i : i + 1])
+        (want_v, want_g), (got_v, got_g) = _reference(*args), _fused(*args)
+        assert torch.isfinite(got_v) and torch.all(torch.isfinite(got_g))
+        assert abs(float(got_v - want_v)) <= 1e-12 * abs(float(want_v)), i
+        assert torch.allclose(got_g, want_g, rtol=1e-12, atol=1e-300), i
+    # μ = u0, a degenerate normal, d ⟂ n: value 0, a zero gradient
+    for i in (0, 1, 2, 7):
+        v, g = _fused(means, idx[i : i + 1], u0[i : i + 1], normals[i : i + 1])
+        assert float(v) == 0.0 and torch.all(g == 0), i
+
+
+def test_a_normal_whose_squared_norm_overflows():
+    """‖n‖ = inf: the cosine 0 in both; layout_loss's autograd gradient is NaN there (inf/inf in
+    its backward), the closed form's a finite 0 (the trainer would have zeroed the NaN)."""
+    means, idx, u0, normals = _case(20, 2, 5)
+    normals = normals * 1e200
+    want_v, want_g = _reference(means, idx, u0, normals)
+    got_v, got_g = _fused(means, idx, u0, normals)
+    assert float(want_v) == float(got_v) == 0.0
+    assert torch.isnan(want_g[idx]).all()
+    assert torch.all(got_g == 0)
+
+
+def test_no_row_gives_zero_attached_to_the_graph():
+    means = torch.randn(10, 3, dtype=torch.float64, requires_grad=True)
+    idx = torch.zeros(0, dtype=torch.long)
+    val = layout_loss_rows(means, idx, torch.zeros(0, 3, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.float64))
+    assert float(val.detach()) == 0.0 and val.requires_grad
+    (g,) = torch.autograd.grad(val, means)
+    assert torch.all(g == 0)
+    assert len(LayoutRows(idx, torch.zeros(0, 3), torch.zeros(0, 3))) == 0
+
+
+def test_float32_at_u0_is_finite():
+    means, idx, u0, normals = _case(40, 5, 1, dtype=torch.float32)
+    u0[0] = means[idx[0]]
+    m = means.clone().requires_grad_(True)
+    val = layout_loss_rows(m, idx, u0, normals)
+    (g,) = torch.autograd.grad(val, m)
+    assert torch.isfinite(val) and torch.all(torch.isfinite(g))
+    assert torch.all(g[idx[0]] == 0)
+
+
+def test_gradcheck():
+    means, idx, u0, normals = _case(12, 5, 4)
+    m = means.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda x: layout_loss_rows(x, idx, u0, normals), (m,))
+    # the gradient scales with the incoming one (the loss times λ_layout in the objective)
+    assert torch.autograd.gradcheck(lambda x: 0.37 * layout_loss_rows(x, idx, u0, normals), (m,))
+
+
+def test_few_device_operations():
+    """Between densifications (rows cached): forward and backward together a handful of
+    operations, none of them a host sync (the unfused loss was ~15 forward + ~20 backward)."""
+    means, idx, u0, normals = _case(300, 40, 2, dtype=torch.float32)
+    rows = LayoutRows(idx, u0, normals)
+    m = means.clone().requires_grad_(True)
+    with DispatchCounter() as c:
+        (0.1 * rows.loss(m)).backward()
+    assert c.syncs == 0, c.summary()
+    # 14 forward (rows, d, ‖d‖, r, d/r, c, Σ|c|, n̂ − c·d/r, sign(c), /r, the rows of the
+    # gradient, the [N,3] zeros and the scatter) + 1 backward; the test's 0.1·L: 1 + 2 backward
+    assert c.device_ops <= 18, c.summary()
+    assert c.ops.get("index_put_", 0) == 0 and c.ops.get("index_put", 0) == 0, c.summary()
+
+
+def test_a_repeated_row_counts_twice():
+    means, idx, u0, normals = _case(30, 4, 6)
+    idx2, u02, n2 = torch.cat([idx, idx[:2]]), torch.cat([u0, u0[:2] + 0.1]), torch.cat([normals, normals[:2]])
+    (want_v, want_g), (got_v, got_g) = _reference(means, idx2, u02, n2), _fused(means, idx2, u02, n2)
+    assert abs(float(got_v - want_v)) <= 1e-12 * abs(float(want_v))
+    assert torch.allclose(got_g, want_g, rtol=1e-12, atol=1e-15)
