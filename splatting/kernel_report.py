@@ -159,6 +159,16 @@ def _mock_launches(dtype_name: str, H: int, W: int, ts: int):
             launch = project_triton_backward.backward_launch(
                 Mock(f.dtype, [N, 3]), f, f, f, f, f, b, f, (f, f, f, f, f, f, f), True, sh, 16 if sh >= 0 else 1)
             out.append((f"project backward ({'RGB' if sh < 0 else 'SH 3'})", launch, None))
+    if dtype_name == "float32":  # the training loss (splatting/photometric_triton.py), masked and weighted
+        from . import photometric_triton as pt
+
+        img, plane = Mock(f.dtype, [H, W, 3]), Mock(f.dtype, [H, W])
+        sp = (3 * W, 3, 1)
+        fwd = pt._launches(img, img, plane, plane, f, f, f, f, f, (0.8, 0.2), H, W, sp, sp)
+        bwd = pt._backward_launches(f, f, img, img, plane, plane, f, f, (f, None, None), img, (0.8, 0.2), H, W,
+                                    sp, sp, sp)
+        names = ("loss: moments", "loss: SSIM", "loss: sum", "loss backward: blur", "loss backward: combine")
+        out.extend((name, launch, None) for name, launch in zip(names, fwd + bwd))
     if dtype_name == "float32":  # integer only: the same kernel for every working dtype
         out.append(("emit pairs", bin_triton.emit_launch(i32, i64, i32, i32, i32, 1 << 22, ts, W // ts, N), None))
     return out

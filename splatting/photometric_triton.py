@@ -33,7 +33,7 @@ except ImportError:  # the caller checks `available()`
 
 C1, C2 = 0.01**2, 0.03**2
 WINDOW, SIGMA = 11, 1.5
-_BLOCK_Y, _BLOCK_X = 16, 64  # the tile of pixels one program computes
+_BLOCK_Y, _BLOCK_X = 4, 64  # a program's tile: 2 pixels a thread, no spills (bench kernels)
 _FINAL_BLOCK = 1024
 
 
@@ -253,28 +253,60 @@ def _strides(t: torch.Tensor) -> tuple[int, int, int]:
     return t.stride(0), t.stride(1), t.stride(2)
 
 
+def _launches(pred, gt, mask, weight, win, moments, dmaps, partials, totals, lambdas, h, w, sp, sg):
+    """The forward's three launches as (kernel, grid, args, options): spelled out once, for the
+    loss and for the compile check (splatting/kernel_report.py)."""
+    grid = (triton.cdiv(h, _BLOCK_Y), triton.cdiv(w, _BLOCK_X))
+    has_mask, has_weight = mask is not None, weight is not None
+    m = mask if has_mask else win  # any pointer: never read without the flag
+    wt = weight if has_weight else win
+    tile = dict(BY=_BLOCK_Y, BX=_BLOCK_X, num_warps=4)
+    return [
+        (_moments_h, grid, (pred, gt, m, win, moments, h, w, *sp, *sg), dict(HAS_MASK=has_mask, **tile)),
+        (_ssim_v, grid, (moments, pred, gt, m, wt, win, dmaps, partials, h, w, *sp, *sg),
+         dict(HAS_MASK=has_mask, HAS_WEIGHT=has_weight, **tile)),
+        (_finalize, (1,), (partials, grid[0] * grid[1], totals, *lambdas),
+         dict(HAS_MASK=has_mask, HAS_WEIGHT=has_weight, BLOCK=_FINAL_BLOCK, num_warps=4)),
+    ]
+
+
+def _backward_launches(dmaps, blurred, pred, gt, mask, weight, win, totals, ups, grad, lambdas, h, w, sp, sg, so):
+    """The backward's two launches, as :func:`_launches`; `ups` the upstream gradients of
+    (loss, L1, SSIM), None where that output is unused."""
+    grid = (triton.cdiv(h, _BLOCK_Y), triton.cdiv(w, _BLOCK_X))
+    has_mask, has_weight = mask is not None, weight is not None
+    tile = dict(BY=_BLOCK_Y, BX=_BLOCK_X, num_warps=4)
+    flags = dict(HAS_G_LOSS=ups[0] is not None, HAS_G_L1=ups[1] is not None, HAS_G_SSIM=ups[2] is not None)
+    ups = [win if t is None else t for t in ups]  # None: never read
+    return [
+        (_dmaps_h, grid, (dmaps, win, blurred, h, w), tile),
+        (_grad_v, grid, (blurred, pred, gt, mask if has_mask else win, weight if has_weight else win, win, totals,
+                         *ups, grad, h, w, *sp, *sg, *so, *lambdas),
+         dict(HAS_MASK=has_mask, HAS_WEIGHT=has_weight, **flags, **tile)),
+    ]
+
+
+def _run(launches) -> None:
+    for kernel, grid, args, options in launches:
+        kernel[grid](*args, **options)
+
+
 class _FusedPhotometric(torch.autograd.Function):
     @staticmethod
     def forward(ctx, pred, gt, mask, weight, lambda_l1: float, lambda_dssim: float):
         h, w = pred.shape[:2]
         dev, dt = pred.device, pred.dtype
         win = _window(dt, dev)
-        grid = (triton.cdiv(h, _BLOCK_Y), triton.cdiv(w, _BLOCK_X))
+        tiles = triton.cdiv(h, _BLOCK_Y) * triton.cdiv(w, _BLOCK_X)
         moments = torch.empty((15, h, w), dtype=dt, device=dev)
         dmaps = torch.empty((9, h, w), dtype=dt, device=dev)
-        partials = torch.empty((grid[0] * grid[1], 3), dtype=dt, device=dev)
+        partials = torch.empty((tiles, 3), dtype=dt, device=dev)
         totals = torch.empty(5, dtype=dt, device=dev)
-        has_mask, has_weight = mask is not None, weight is not None
-        m = mask if has_mask else win  # any pointer: never read without the flag
-        wt = weight if has_weight else win
-        _moments_h[grid](pred, gt, m, win, moments, h, w, *_strides(pred), *_strides(gt),
-                         HAS_MASK=has_mask, BY=_BLOCK_Y, BX=_BLOCK_X)
-        _ssim_v[grid](moments, pred, gt, m, wt, win, dmaps, partials, h, w, *_strides(pred), *_strides(gt),
-                      HAS_MASK=has_mask, HAS_WEIGHT=has_weight, BY=_BLOCK_Y, BX=_BLOCK_X)
-        _finalize[(1,)](partials, partials.shape[0], totals, float(lambda_l1), float(lambda_dssim),
-                        HAS_MASK=has_mask, HAS_WEIGHT=has_weight, BLOCK=_FINAL_BLOCK)
+        lambdas = (float(lambda_l1), float(lambda_dssim))
+        _run(_launches(pred, gt, mask, weight, win, moments, dmaps, partials, totals, lambdas, h, w,
+                       _strides(pred), _strides(gt)))
         ctx.save_for_backward(pred, gt, mask, weight, dmaps, totals)
-        ctx.lambdas = (float(lambda_l1), float(lambda_dssim))
+        ctx.lambdas = lambdas
         ctx.set_materialize_grads(False)
         return totals[0], totals[1], totals[2]
 
@@ -287,14 +319,9 @@ class _FusedPhotometric(torch.autograd.Function):
         win = _window(pred.dtype, pred.device)
         blurred = torch.empty_like(dmaps)
         grad = torch.empty((h, w, 3), dtype=pred.dtype, device=pred.device)
-        grid = (triton.cdiv(h, _BLOCK_Y), triton.cdiv(w, _BLOCK_X))
-        _dmaps_h[grid](dmaps, win, blurred, h, w, BY=_BLOCK_Y, BX=_BLOCK_X)
-        has_mask, has_weight = mask is not None, weight is not None
-        ups = [win if t is None else t.contiguous() for t in (g_loss, g_l1, g_ssim)]  # None: never read
-        _grad_v[grid](blurred, pred, gt, mask if has_mask else win, weight if has_weight else win, win, totals,
-                      *ups, grad, h, w, *_strides(pred), *_strides(gt), *_strides(grad), *ctx.lambdas,
-                      HAS_MASK=has_mask, HAS_WEIGHT=has_weight, HAS_G_LOSS=g_loss is not None,
-                      HAS_G_L1=g_l1 is not None, HAS_G_SSIM=g_ssim is not None, BY=_BLOCK_Y, BX=_BLOCK_X)
+        ups = [None if t is None else t.contiguous() for t in (g_loss, g_l1, g_ssim)]
+        _run(_backward_launches(dmaps, blurred, pred, gt, mask, weight, win, totals, ups, grad, ctx.lambdas, h, w,
+                                _strides(pred), _strides(gt), _strides(grad)))
         return grad, None, None, None, None, None
 
 
