@@ -58,26 +58,30 @@ class Rendered:
     backend: str
 
 
+def render_on_device(g, pose_c2w: np.ndarray, camera, backend: str | None = None, background=None, rig=None):
+    """The render of `g` from a camera-to-world pose as the renderer returns it, on the model's
+    device (what an interactive viewer shows; `render_pose` downloads and normalises it)."""
+    from gaussians.model import render_stitched
+
+    render = _render_fn()
+    dtype, device = g.means.dtype, g.means.device
+    viewmat = torch.linalg.inv(torch.as_tensor(np.asarray(pose_c2w), dtype=torch.float64)).to(dtype=dtype, device=device)
+    with torch.no_grad():
+        if rig is None:
+            return render(g, viewmat, camera, backend=backend, background=background)
+        return render_stitched(g, viewmat, camera.height, camera.width, rig, backend=backend, background=background)
+
+
 def render_pose(g, pose_c2w: np.ndarray, camera, backend: str | None = None, background=None,
                 rig=None) -> Rendered:
     """Render `g` from a camera-to-world pose; depth is normalised by alpha (the renderer
     returns Σ T·α·‖t‖, whose ratio to alpha is the expected distance). With `rig` (a
     splatting.PerspectiveRig; `camera` then an EquirectCamera) the panorama is stitched from the
     rig's rendered crops, as the perspective baseline produces its test panoramas."""
-    from gaussians.model import render_stitched
-
-    render = _render_fn()
-    dtype, device = g.means.dtype, g.means.device
-    viewmat = torch.linalg.inv(torch.as_tensor(np.asarray(pose_c2w), dtype=torch.float64)).to(dtype=dtype, device=device)
     t0 = time.perf_counter()
-    with torch.no_grad():
-        if rig is None:
-            out = render(g, viewmat, camera, backend=backend, background=background)
-        else:
-            out = render_stitched(g, viewmat, camera.height, camera.width, rig, backend=backend,
-                                  background=background)
-        if device.type == "cuda":
-            torch.cuda.synchronize()
+    out = render_on_device(g, pose_c2w, camera, backend=backend, background=background, rig=rig)
+    if g.means.device.type == "cuda":
+        torch.cuda.synchronize()
     seconds = time.perf_counter() - t0
     alpha = out.alpha.detach().float().cpu().numpy()
     depth = out.depth.detach().float().cpu().numpy()

@@ -54,7 +54,8 @@ class EvaluateOutput(BaseModel):
     lpips_available: bool
     lpips_reason: str | None = Field(default=None, description="Why LPIPS is unavailable, when it is.")
     lpips_net: str | None = None
-    fps: float = Field(description="Median frames per second of a full-panorama render at `resolution`.")
+    fps: float = Field(description="Median frames per second of a full-panorama render at `resolution` "
+                                   "(pose in, image on the device out; the download is not timed).")
     fps_repeats: int
     backend: str = Field(description="Splatting backend used for rendering.")
     device: str

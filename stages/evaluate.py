@@ -23,7 +23,7 @@ import torch
 from pydantic import Field, field_validator
 
 from evaluation import metrics as M
-from evaluation.model_io import equirect_camera, load_model, render_pose
+from evaluation.model_io import equirect_camera, load_model, render_on_device, render_pose
 from evaluation.visuals import depth_rgb, error_rgb
 from panogeom.images import read_rgb, write_rgb
 from runfs.errors import PanoError
@@ -175,8 +175,8 @@ def stitch_rig(tdata, size: tuple[int, int]):
 
 
 def render_seconds(render_once, device: str) -> float:
-    """Seconds one call of `render_once` takes: on CUDA the device time between two events (the
-    render and its download), not the host-side launch time."""
+    """Seconds one call of `render_once` takes: on CUDA the time between two events recorded
+    before and after it (the device's time, which includes any wait for the host's launches)."""
     if device != "cuda":
         t0 = time.perf_counter()
         render_once()
@@ -288,9 +288,12 @@ def run(ctx: StageContext) -> EvaluateOutput:
                 )
             )
 
-        # Speed: the first view again, timed; its first render above was the warm-up.
+        # Speed: the first view again, timed; its first render above was the warm-up. A frame is
+        # pose in, panorama on the device out (as 3DGS and gsplat count FPS): the download to
+        # host memory and the metrics are not part of rendering it.
         pose, cam, rig = views[0].pose_matrix, equirect_camera(*size), stitch_rig(tdata, size)
-        times = [render_seconds(lambda: render_pose(g, pose, cam, backend=p.backend, background=background, rig=rig),
+        times = [render_seconds(lambda: render_on_device(g, pose, cam, backend=p.backend, background=background,
+                                                         rig=rig),
                                 device) for _ in range(p.fps_repeats)]
         fps = 1.0 / max(statistics.median(times), 1e-9)
         threads = torch.get_num_threads()
