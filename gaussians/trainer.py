@@ -39,7 +39,7 @@ from gaussians.model import PARAM_NAMES, Gaussians, render
 from gaussians.objective import TrainingObjective
 from gaussians.optim import Adam, expon_lr
 from gaussians.strategy import DensifyStrategy
-from gaussians.view_jitter import TurnMaps, random_turn, turn_panorama
+from gaussians.view_jitter import TurnMaps, random_turn, turn_view_images
 
 __all__ = ["TrainConfig", "TrainView", "Trainer", "scene_extent", "CHECKPOINT_NAME"]
 
@@ -235,14 +235,8 @@ class Trainer:
         if turn_maps is None:
             turn_maps = self._turn_maps[key] = TurnMaps(*key, device=self.device)
         rot = random_turn(self.cfg.turns.random_turn_tilt_deg, self.gen)
-        maps = turn_maps.maps(rot)
         with torch.no_grad():
-            image = turn_panorama(view.image, maps, self.cfg.turns.random_turn_interp)
-            if self.cfg.turns.random_turn_interp != "bilinear":
-                image = image.clamp_(0.0, 1.0)
-            mask = None
-            if view.mask is not None:
-                mask = turn_panorama(view.mask[..., None].to(view.image.dtype), maps)[..., 0] > 0.999
+            image, mask = turn_view_images(turn_maps, rot, view.image, view.mask, self.cfg.turns.random_turn_interp)
         viewmat = view.viewmat.clone()
         viewmat[:3] = rot.to(viewmat) @ view.viewmat[:3]
         return TrainView(view.name, image, viewmat, view.camera, mask)

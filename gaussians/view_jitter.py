@@ -30,7 +30,10 @@ from scipy.spatial.transform import Rotation
 from panogeom.equirect import ray_directions
 from panogeom.rotate import yaw_matrix
 
-__all__ = ["random_turn", "turn_panorama", "TurnMaps"]
+__all__ = ["random_turn", "turn_panorama", "turn_view_images", "TurnMaps"]
+
+#: Turn on CPU tensors with the Triton kernel too (the interpreter; tests compare the two paths).
+KERNEL_ON_CPU = False
 
 _PAD = 2  # rows (cv2) or wrapped columns (grid_sample) on each side: bicubic reads two pixels either way
 
@@ -88,3 +91,26 @@ def turn_panorama(image: torch.Tensor, maps: torch.Tensor, mode: str = "bilinear
     grid = torch.stack([gx, gy], -1)[None].to(image.dtype)
     out = F.grid_sample(padded, grid, mode=mode, padding_mode="border", align_corners=True)
     return out[0].permute(1, 2, 0).contiguous()
+
+
+def turn_view_images(turn_maps: TurnMaps, rotation: torch.Tensor, image: torch.Tensor, mask: torch.Tensor | None,
+                     mode: str) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """A training view's image ([H,W,3], clamped to [0, 1] unless bilinear) and mask ([H,W] bool,
+    valid where the bilinear sample reads valid pixels only) turned by `rotation`. On a GPU (float32)
+    one Triton launch each (gaussians/turn_triton.py); elsewhere `TurnMaps.maps` + `turn_panorama`."""
+    from gaussians import turn_triton
+
+    on_kernel = image.device.type == "cuda" or (KERNEL_ON_CPU and image.device.type == "cpu")
+    if on_kernel and image.dtype == torch.float32 and turn_triton.available():
+        out = turn_triton.turn(image, turn_maps.dirs, rotation, mode, clamp01=mode != "bilinear")
+        if mask is None:
+            return out, None
+        m = turn_triton.turn(mask[..., None].to(image.dtype), turn_maps.dirs, rotation, "bilinear", clamp01=False)
+        return out, m[..., 0] > 0.999
+    maps = turn_maps.maps(rotation)
+    out = turn_panorama(image, maps, mode)
+    if mode != "bilinear":
+        out = out.clamp_(0.0, 1.0)
+    if mask is None:
+        return out, None
+    return out, turn_panorama(mask[..., None].to(image.dtype), maps)[..., 0] > 0.999
