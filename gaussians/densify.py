@@ -61,6 +61,10 @@ def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
     return r.reshape(q.shape[:-1] + (3, 3))
 
 
+#: Accumulate the statistics with the Triton kernel on CPU tensors too (the interpreter; tests).
+KERNEL_ON_CPU = False
+
+
 @dataclass
 class DensifyStats:
     """Per-Gaussian accumulators between densification steps (3DGS's xyz_gradient_accum, denom, max_radii2D)."""
@@ -83,6 +87,12 @@ class DensifyStats:
         if grad2d is None:
             return
         scale = float(pixel_scale if grad_scale is None else grad_scale)
+        if self._on_kernel():
+            from splatting import densify_triton
+
+            densify_triton.add_(grad2d, visible, radii, self.grad_accum, self.count, self.max_radius, scale,
+                                float(pixel_scale))
+            return
         g = torch.linalg.vector_norm(grad2d.to(self.grad_accum.dtype), dim=-1) * scale
         g = torch.nan_to_num(g, nan=0.0, posinf=0.0, neginf=0.0)
         vis = visible & (radii > 0)
@@ -90,6 +100,17 @@ class DensifyStats:
         self.count += vis.to(self.count.dtype)
         r = radii.to(self.max_radius.dtype) / float(pixel_scale)
         self.max_radius = torch.where(vis, torch.maximum(self.max_radius, r), self.max_radius)
+
+    def _on_kernel(self) -> bool:
+        """One Triton launch instead of ~14 operations: on a GPU (or, for the tests, where
+        KERNEL_ON_CPU is set), with the accumulators contiguous."""
+        t = self.grad_accum
+        on = t.device.type == "cuda" or (KERNEL_ON_CPU and t.device.type == "cpu")
+        if not on or not all(x.is_contiguous() for x in (t, self.count, self.max_radius)):
+            return False
+        from splatting import densify_triton
+
+        return densify_triton.available()
 
     def mean_grad(self) -> torch.Tensor:
         return torch.where(self.count > 0, self.grad_accum / self.count.clamp_min(1), torch.zeros_like(self.count))

@@ -98,7 +98,7 @@ def turn_view_images(turn_maps: TurnMaps, rotation: torch.Tensor, image: torch.T
     """A training view's image ([H,W,3], clamped to [0, 1] unless bilinear) and mask ([H,W] bool,
     valid where the bilinear sample reads valid pixels only) turned by `rotation`. On a GPU (float32)
     one Triton launch each (gaussians/turn_triton.py); elsewhere `TurnMaps.maps` + `turn_panorama`."""
-    from gaussians import turn_triton
+    from splatting import turn_triton
 
     on_kernel = image.device.type == "cuda" or (KERNEL_ON_CPU and image.device.type == "cpu")
     if on_kernel and image.dtype == torch.float32 and turn_triton.available():

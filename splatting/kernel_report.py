@@ -169,9 +169,14 @@ def _mock_launches(dtype_name: str, H: int, W: int, ts: int):
                                     sp, sp, sp)
         names = ("loss: moments", "loss: SSIM", "loss: sum", "loss backward: blur", "loss backward: combine")
         out.extend((name, launch, None) for name, launch in zip(names, fwd + bwd))
-        from gaussians import turn_triton  # the random turn of a training panorama (bicubic)
+        from . import turn_triton  # the random turn of a training panorama (bicubic)
 
         out.append(("random turn", turn_triton.turn_launch(img, f, f, img, H, W, 3, True, True), None))
+        from . import densify_triton  # a view's densification statistics
+
+        u8 = Mock(torch.uint8)
+        out.append(("densify statistics", densify_triton.add_launch(f, u8, i32, f, f, f, N, 2, 1, 6, 81.5, 163.0),
+                    None))
     if dtype_name == "float32":  # integer only: the same kernel for every working dtype
         out.append(("emit pairs", bin_triton.emit_launch(i32, i64, i32, i32, i32, 1 << 22, ts, W // ts, N), None))
     return out

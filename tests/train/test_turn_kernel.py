@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from gaussians import turn_triton, view_jitter
+from gaussians import view_jitter
+from splatting import turn_triton
 from gaussians.view_jitter import TurnMaps, random_turn, turn_panorama, turn_view_images
 from panogeom.rotate import yaw_matrix
 

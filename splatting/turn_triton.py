@@ -1,5 +1,6 @@
 """A randomly turned training panorama in one Triton launch (the GPU side of
-`gaussians.view_jitter`): for each pixel of the turned copy, the direction R d of its centre,
+`gaussians.view_jitter`; here beside the other kernels, since this package imports nothing of
+the trainer's): for each pixel of the turned copy, the direction R d of its centre,
 its pixel coordinates in the original and the bicubic (or bilinear) sample there, periodic
 across the ±180° seam and clamped at the poles, as `TurnMaps.maps` + `turn_panorama` compute
 it with ~20 torch operations (atan2, asin, the grid and grid_sample's sampling, the clamp).
@@ -21,7 +22,7 @@ try:
 
     # the projection's polynomial atan2 (|error| <= 1e-8 rad: 3e-6 pixel at W = 2048); libdevice's
     # does not run in the interpreter, which CI checks this kernel with
-    from splatting.project_triton import _atan2
+    from .project_triton import _atan2
 except ImportError:
     triton = None
 
