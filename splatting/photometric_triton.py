@@ -47,6 +47,15 @@ if triton is not None:
     _C2 = tl.constexpr(C2)
 
     @triton.jit
+    def _blur_v(src, y, x, H, W, win, BY: tl.constexpr, BX: tl.constexpr):
+        """Σ_k win[k]·src[y+k−R, x] over one [H,W] plane (zero outside): the vertical pass."""
+        acc = tl.zeros([BY, BX], dtype=src.dtype.element_ty)
+        for k in tl.static_range(2 * _R + 1):
+            ys = y + (k - _R)
+            acc += tl.load(win + k) * tl.load(src + ys * W + x, mask=(x < W) & (ys >= 0) & (ys < H), other=0.0)
+        return acc
+
+    @triton.jit
     def _moments_h(pred, gt, mask, win, out, H, W, sp_y, sp_x, sp_c, sg_y, sg_x, sg_c,
                    HAS_MASK: tl.constexpr, BY: tl.constexpr, BX: tl.constexpr):
         """out[j*3+c, y, x] = Σ_k win[k]·q_j(y, x+k−R): the horizontal blur of q = p, g, p², g², pg."""
@@ -99,21 +108,11 @@ if triton is not None:
         s_sum = tl.zeros([BY, BX], dtype=dmaps.dtype.element_ty)
         l1_sum = tl.zeros([BY, BX], dtype=dmaps.dtype.element_ty)
         for c in tl.static_range(3):
-            mu1 = tl.zeros([BY, BX], dtype=dmaps.dtype.element_ty)
-            mu2 = tl.zeros([BY, BX], dtype=dmaps.dtype.element_ty)
-            e11 = tl.zeros([BY, BX], dtype=dmaps.dtype.element_ty)
-            e22 = tl.zeros([BY, BX], dtype=dmaps.dtype.element_ty)
-            e12 = tl.zeros([BY, BX], dtype=dmaps.dtype.element_ty)
-            for k in tl.static_range(2 * _R + 1):
-                ys = y + (k - _R)
-                ok = (x < W) & (ys >= 0) & (ys < H)
-                wk = tl.load(win + k)
-                at = moments + ys * W + x
-                mu1 += wk * tl.load(at + (0 + c) * plane, mask=ok, other=0.0)
-                mu2 += wk * tl.load(at + (3 + c) * plane, mask=ok, other=0.0)
-                e11 += wk * tl.load(at + (6 + c) * plane, mask=ok, other=0.0)
-                e22 += wk * tl.load(at + (9 + c) * plane, mask=ok, other=0.0)
-                e12 += wk * tl.load(at + (12 + c) * plane, mask=ok, other=0.0)
+            mu1 = _blur_v(moments + (0 + c) * plane, y, x, H, W, win, BY, BX)
+            mu2 = _blur_v(moments + (3 + c) * plane, y, x, H, W, win, BY, BX)
+            e11 = _blur_v(moments + (6 + c) * plane, y, x, H, W, win, BY, BX)
+            e22 = _blur_v(moments + (9 + c) * plane, y, x, H, W, win, BY, BX)
+            e12 = _blur_v(moments + (12 + c) * plane, y, x, H, W, win, BY, BX)
             # the terms of gaussians.losses._ssim_terms, in its order
             a1 = 2.0 * (mu1 * mu2) + _C1
             a2 = 2.0 * (e12 - mu1 * mu2) + _C2
@@ -210,6 +209,8 @@ if triton is not None:
         if HAS_WEIGHT:
             u = u * tl.load(weight + y * W + x, mask=inside, other=0.0)
         for c in tl.static_range(3):
+            # the three planes' vertical pass in one loop over the taps (three _blur_v calls spill
+            # 8 B on sm_80)
             b_mu1 = tl.zeros([BY, BX], dtype=grad_out.dtype.element_ty)
             b_e11 = tl.zeros([BY, BX], dtype=grad_out.dtype.element_ty)
             b_e12 = tl.zeros([BY, BX], dtype=grad_out.dtype.element_ty)
@@ -217,10 +218,10 @@ if triton is not None:
                 ys = y + (k - _R)
                 ok = (x < W) & (ys >= 0) & (ys < H)
                 wk = tl.load(win + k)
-                at = blurred_h + ys * W + x
-                b_mu1 += wk * tl.load(at + (0 + c) * plane, mask=ok, other=0.0)
-                b_e11 += wk * tl.load(at + (3 + c) * plane, mask=ok, other=0.0)
-                b_e12 += wk * tl.load(at + (6 + c) * plane, mask=ok, other=0.0)
+                at = blurred_h + ys * W + x + c * plane
+                b_mu1 += wk * tl.load(at, mask=ok, other=0.0)
+                b_e11 += wk * tl.load(at + 3 * plane, mask=ok, other=0.0)
+                b_e12 += wk * tl.load(at + 6 * plane, mask=ok, other=0.0)
             p = tl.load(pred + y * sp_y + x * sp_x + c * sp_c, mask=inside, other=0.0)
             g = tl.load(gt + y * sg_y + x * sg_x + c * sg_c, mask=inside, other=0.0)
             pm = p

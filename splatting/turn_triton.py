@@ -44,6 +44,19 @@ if triton is not None:
         return ((-0.75 * t - 5.0 * -0.75) * t + 8.0 * -0.75) * t - 4.0 * -0.75
 
     @triton.jit
+    def _cubic_weight(t, K: tl.constexpr):
+        """The weight of tap K (0..3, at offsets −1..2 from the floor) for the fraction t."""
+        if K == 0:
+            w = _cubic_far(t + 1.0)
+        elif K == 1:
+            w = _cubic_near(t)
+        elif K == 2:
+            w = _cubic_near(1.0 - t)
+        else:
+            w = _cubic_far(2.0 - t)
+        return w
+
+    @triton.jit
     def _turn(image, dirs, rot, out, H, W, C: tl.constexpr, BICUBIC: tl.constexpr, CLAMP01: tl.constexpr,
               BLOCK: tl.constexpr):
         i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
@@ -72,28 +85,12 @@ if triton is not None:
             if BICUBIC:
                 for a in tl.static_range(4):
                     rr = tl.minimum(tl.maximum(r0i + (a - 1), 0), H - 1)
-                    if a == 0:
-                        wy = _cubic_far(ty + 1.0)
-                    elif a == 1:
-                        wy = _cubic_near(ty)
-                    elif a == 2:
-                        wy = _cubic_near(1.0 - ty)
-                    else:
-                        wy = _cubic_far(2.0 - ty)
                     line = tl.zeros([BLOCK], dtype=tl.float32)
                     for b in tl.static_range(4):
                         cc = (c0i + (b - 1) + 2 * W) % W
-                        if b == 0:
-                            wx = _cubic_far(tx + 1.0)
-                        elif b == 1:
-                            wx = _cubic_near(tx)
-                        elif b == 2:
-                            wx = _cubic_near(1.0 - tx)
-                        else:
-                            wx = _cubic_far(2.0 - tx)
                         v = tl.load(image + (rr * W + cc) * C + ch, mask=inside, other=0.0).to(tl.float32)
-                        line += wx * v
-                    acc += wy * line
+                        line += _cubic_weight(tx, b) * v
+                    acc += _cubic_weight(ty, a) * line
             else:
                 r1 = tl.minimum(r0i + 1, H - 1)
                 ca = (c0i + 2 * W) % W
