@@ -149,7 +149,10 @@ def _mock_launches(dtype_name: str, H: int, W: int, ts: int):
     size = f.element_size()
     N = 300_000
     out = [("forward", rt.forward_launch(f, f, i32, i32, f, f, f, i32, H, W, ts), rt.pairs_per_trip("forward", ts, size)),
-           ("backward", rt.backward_launch(f, f, i32, i32, f, i32, f, f, f, f, H, W, ts),
+           # training's backward (a photometric loss: the colour's gradient alone), and with depth and alpha
+           ("backward", rt.backward_launch(f, f, i32, i32, f, i32, f, None, None, f, H, W, ts),
+            rt.pairs_per_trip("backward", ts, size)),
+           ("backward + depth, alpha", rt.backward_launch(f, f, i32, i32, f, i32, f, f, f, f, H, W, ts),
             rt.pairs_per_trip("backward", ts, size))]
     for sh in (-1, 3):
         launch = project_triton.projection_launch(

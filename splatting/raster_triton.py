@@ -128,7 +128,8 @@ if triton is not None:
 
     @triton.jit
     def _raster_bwd(P, dirs, toff, tlist, T_final, last_k, g_color, g_depth, g_alpha, gP, H, W, TS,
-                    SPLIT: tl.constexpr, BLOCK_PIX: tl.constexpr):
+                    SPLIT: tl.constexpr, BLOCK_PIX: tl.constexpr, HAS_G_DEPTH: tl.constexpr,
+                    HAS_G_ALPHA: tl.constexpr):
         tile, pix, pok = _tile_pixels(tl.program_id(0), H, W, TS, SPLIT, BLOCK_PIX)
         dx = tl.load(dirs + pix * 3, mask=pok, other=0)
         dy = tl.load(dirs + pix * 3 + 1, mask=pok, other=0)
@@ -136,8 +137,14 @@ if triton is not None:
         gCr = tl.load(g_color + pix * 3, mask=pok, other=0)
         gCg = tl.load(g_color + pix * 3 + 1, mask=pok, other=0)
         gCb = tl.load(g_color + pix * 3 + 2, mask=pok, other=0)
-        gD = tl.load(g_depth + pix, mask=pok, other=0)
-        gA = tl.load(g_alpha + pix, mask=pok, other=0)
+        # depth and alpha often have no gradient (a photometric loss alone): then the loop
+        # neither loads nor sums their terms
+        gD = dx * 0
+        gA = dx * 0
+        if HAS_G_DEPTH:
+            gD = tl.load(g_depth + pix, mask=pok, other=0)
+        if HAS_G_ALPHA:
+            gA = tl.load(g_alpha + pix, mask=pok, other=0)
         T = tl.load(T_final + pix, mask=pok, other=1)  # transmittance behind the current Gaussian
         last = tl.load(last_k + pix, mask=pok, other=-1)
         behind = dx * 0  # Σ_{j behind} w_j x_j of the Gaussians already visited
@@ -167,8 +174,11 @@ if triton is not None:
                 T = T * ra  # the transmittance in front of this Gaussian
                 w = alpha * T
                 # dL/d(contribution) of the Gaussian at the pixel: colour, depth and alpha terms
-                x = tl.load(row + 15) * gCr + tl.load(row + 16) * gCg + tl.load(row + 17) * gCb \
-                    + tl.load(row + 18) * gD + gA
+                x = tl.load(row + 15) * gCr + tl.load(row + 16) * gCg + tl.load(row + 17) * gCb
+                if HAS_G_DEPTH:
+                    x += tl.load(row + 18) * gD
+                if HAS_G_ALPHA:
+                    x += gA
                 dLda = T * x - behind * ra
                 behind += w * x
                 # no gradient through the 0.99 clamp (docs/splatting.md)
@@ -203,7 +213,8 @@ if triton is not None:
                 grad = tl.where(j == 15, tl.reduce(w * gCr, 0, _sum_combine), grad)
                 grad = tl.where(j == 16, tl.reduce(w * gCg, 0, _sum_combine), grad)
                 grad = tl.where(j == 17, tl.reduce(w * gCb, 0, _sum_combine), grad)
-                grad = tl.where(j == 18, tl.reduce(w * gD, 0, _sum_combine), grad)
+                if HAS_G_DEPTH:
+                    grad = tl.where(j == 18, tl.reduce(w * gD, 0, _sum_combine), grad)
                 tl.atomic_add(gP + tl.load(tlist + k) * _PACK + j, grad, mask=j < _PACK - 1, sem="relaxed")
 
 def _interpreter_state():
@@ -261,10 +272,14 @@ def forward_launch(P, dirs, toff, tlist, color, depth, T_alpha, last, H, W, ts):
 
 
 def backward_launch(P, dirs, toff, tlist, T_final, last, g_color, g_depth, g_alpha, gP, H, W, ts):
-    """As :func:`forward_launch`, for the backward."""
+    """As :func:`forward_launch`, for the backward; `g_depth` or `g_alpha` None: no gradient
+    reaches that output (the kernel then skips its terms)."""
     grid, options = _config("backward", H, W, ts, P.element_size())
+    flags = dict(HAS_G_DEPTH=g_depth is not None, HAS_G_ALPHA=g_alpha is not None)
+    g_depth = g_color if g_depth is None else g_depth  # any pointer: never read without its flag
+    g_alpha = g_color if g_alpha is None else g_alpha
     return (_raster_bwd, grid, (P, dirs, toff, tlist, T_final, last, g_color, g_depth, g_alpha, gP, H, W, ts),
-            options)
+            dict(options, **flags))
 
 
 def _launch(kernel, grid, args, options):
@@ -293,6 +308,7 @@ class TritonRaster(torch.autograd.Function):
         last = torch.empty(npx, dtype=torch.int32, device=device)
         _launch(*forward_launch(P, dirs, toff, tlist, color, depth, T_alpha, last, H, W, ts))
         ctx.save_for_backward(P, dirs, toff, tlist, T_alpha[0], last)
+        ctx.set_materialize_grads(False)  # an unused output's gradient stays None: no zeros to read
         ctx.dims = (H, W, ts)
         return color.reshape(H, W, 3), depth.reshape(H, W), T_alpha[1].reshape(H, W)
 
@@ -302,13 +318,12 @@ class TritonRaster(torch.autograd.Function):
         H, W, ts = ctx.dims
         dtype, device = P.dtype, P.device
 
-        def grad_or_zeros(g, shape):
-            if g is None:
-                return torch.zeros(shape, dtype=dtype, device=device)
-            return g.to(dtype).reshape(shape).contiguous()
+        def flat(g, shape):
+            return None if g is None else g.to(dtype).reshape(shape).contiguous()
 
+        g_color = torch.zeros((H * W, 3), dtype=dtype, device=device) if g_color is None else flat(g_color, (H * W, 3))
         gP = torch.zeros_like(P)
-        _launch(*backward_launch(P, dirs, toff, tlist, T_final, last, grad_or_zeros(g_color, (H * W, 3)),
-                                 grad_or_zeros(g_depth, (H * W,)), grad_or_zeros(g_alpha, (H * W,)), gP, H, W, ts))
+        _launch(*backward_launch(P, dirs, toff, tlist, T_final, last, g_color, flat(g_depth, (H * W,)),
+                                 flat(g_alpha, (H * W,)), gP, H, W, ts))
         return gP, None, None, None, None, None, None
 

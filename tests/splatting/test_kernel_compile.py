@@ -12,7 +12,7 @@ from splatting.kernel_report import report_in_subprocess  # noqa: E402
 # the backward holds 11 per-pixel values for 8 pixels per thread, so it may use the whole 255.
 # The projection's backward walks ~150 per-Gaussian values back through the forward; it runs once
 # per Gaussian (no pixel loop), so occupancy matters less than spills: the whole 255, no spills.
-REG_BUDGET = {"forward": 128, "backward": 255, "project (RGB)": 128, "project (SH 3)": 128, "emit pairs": 64,
+REG_BUDGET = {"forward": 128, "backward": 255, "backward + depth, alpha": 255, "project (RGB)": 128, "project (SH 3)": 128, "emit pairs": 64,
               "project backward (RGB)": 255, "project backward (SH 3)": 255,
               # the training loss's image passes (2 pixels a thread, 11 taps of 5 moments in flight)
               "loss: moments": 192, "loss: SSIM": 192, "loss: sum": 64, "loss backward: blur": 64,
@@ -20,7 +20,7 @@ REG_BUDGET = {"forward": 128, "backward": 255, "project (RGB)": 128, "project (S
 # the trainer's kernels beside the renderer: float32, what training runs
 LOSS_KERNELS = [k for k in REG_BUDGET if k.startswith("loss")] + ["random turn", "densify statistics"]
 # SASS instructions per Gaussian-pixel pair in the float32 inner loops (issue 26's targets)
-PAIR_BUDGET = {"forward": 40, "backward": 120}
+PAIR_BUDGET = {"forward": 40, "backward": 120, "backward + depth, alpha": 120}
 
 
 @pytest.fixture(scope="module")
