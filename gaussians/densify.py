@@ -61,10 +61,6 @@ def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
     return r.reshape(q.shape[:-1] + (3, 3))
 
 
-#: Accumulate the statistics with the Triton kernel on CPU tensors too (the interpreter; tests).
-KERNEL_ON_CPU = False
-
-
 @dataclass
 class DensifyStats:
     """Per-Gaussian accumulators between densification steps (3DGS's xyz_gradient_accum, denom, max_radii2D)."""
@@ -102,15 +98,12 @@ class DensifyStats:
         self.max_radius = torch.where(vis, torch.maximum(self.max_radius, r), self.max_radius)
 
     def _on_kernel(self) -> bool:
-        """One Triton launch instead of ~14 operations: on a GPU (or, for the tests, where
-        KERNEL_ON_CPU is set), with the accumulators contiguous."""
-        t = self.grad_accum
-        on = t.device.type == "cuda" or (KERNEL_ON_CPU and t.device.type == "cpu")
-        if not on or not all(x.is_contiguous() for x in (t, self.count, self.max_radius)):
-            return False
-        from splatting import densify_triton
+        """One Triton launch instead of ~14 operations: where the training kernels run
+        (splatting.devices.takes_kernels), with the accumulators contiguous."""
+        from splatting.devices import takes_kernels
 
-        return densify_triton.available()
+        return takes_kernels(self.grad_accum) and all(
+            x.is_contiguous() for x in (self.grad_accum, self.count, self.max_radius))
 
     def mean_grad(self) -> torch.Tensor:
         return torch.where(self.count > 0, self.grad_accum / self.count.clamp_min(1), torch.zeros_like(self.count))

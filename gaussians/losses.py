@@ -221,7 +221,8 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_l1: float = 0.
     `weight` ([H,W], >= 0) weighs the per-pixel L1 and SSIM maps (e.g. each pixel's solid angle,
     `solid_angle_weight`); the means are then weighted means over the valid pixels.
 
-    On a GPU (or where ``FUSED_ON_CPU`` is set: the Triton interpreter, in tests) the same loss
+    On a GPU (or where ``splatting.devices.KERNELS_ON_CPU`` is set: the interpreter, in tests) the same
+    loss
     runs as five fused kernels (splatting/photometric_triton.py) instead of ~90 operations."""
     if _fused(pred, gt, lambda_dssim):
         from splatting import photometric_triton
@@ -237,22 +238,17 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_l1: float = 0.
     return lambda_l1 * l1 + lambda_dssim * (1.0 - s), l1, s
 
 
-#: Run the fused Triton loss on CPU tensors too (the interpreter; tests count its operations).
-FUSED_ON_CPU = False
-
-
 def _fused(pred: torch.Tensor, gt: torch.Tensor, lambda_dssim: float) -> bool:
-    """Whether photometric_loss takes the fused kernels: [H,W,3] float images on a GPU (SSIM on;
-    without it, L1 alone is a few operations anyway) and triton importable."""
+    """Whether photometric_loss takes the fused kernels: [H,W,3] float images where the training
+    kernels run (splatting.devices.takes_kernels), SSIM on (without it, L1 alone is a few
+    operations anyway)."""
     if lambda_dssim <= 0 or pred.ndim != 3 or pred.shape[-1] != 3 or gt.shape != pred.shape:
         return False
     if pred.dtype not in (torch.float32, torch.float64) or gt.dtype != pred.dtype:
         return False
-    if not (pred.device.type == "cuda" or (FUSED_ON_CPU and pred.device.type == "cpu")):
-        return False
-    from splatting import photometric_triton
+    from splatting.devices import takes_kernels
 
-    return photometric_triton.available()
+    return takes_kernels(pred)
 
 
 def solid_angle_weight(height: int, width: int, dtype=torch.float32, device="cpu") -> torch.Tensor:

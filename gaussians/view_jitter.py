@@ -32,9 +32,6 @@ from panogeom.rotate import yaw_matrix
 
 __all__ = ["random_turn", "turn_panorama", "turn_view_images", "TurnMaps"]
 
-#: Turn on CPU tensors with the Triton kernel too (the interpreter; tests compare the two paths).
-KERNEL_ON_CPU = False
-
 _PAD = 2  # rows (cv2) or wrapped columns (grid_sample) on each side: bicubic reads two pixels either way
 
 
@@ -99,9 +96,9 @@ def turn_view_images(turn_maps: TurnMaps, rotation: torch.Tensor, image: torch.T
     valid where the bilinear sample reads valid pixels only) turned by `rotation`. On a GPU (float32)
     one Triton launch each (gaussians/turn_triton.py); elsewhere `TurnMaps.maps` + `turn_panorama`."""
     from splatting import turn_triton
+    from splatting.devices import takes_kernels
 
-    on_kernel = image.device.type == "cuda" or (KERNEL_ON_CPU and image.device.type == "cpu")
-    if on_kernel and image.dtype == torch.float32 and turn_triton.available():
+    if takes_kernels(image) and image.dtype == torch.float32:
         out = turn_triton.turn(image, turn_maps.dirs, rotation, mode, clamp01=mode != "bilinear")
         if mask is None:
             return out, None

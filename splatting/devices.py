@@ -16,3 +16,21 @@ def device_key(device) -> tuple[str, int | None]:
     if device.type == "cuda" and device.index is None:
         return ("cuda", torch.cuda.current_device())
     return (device.type, device.index)
+
+
+#: Run the training step's Triton kernels (the photometric loss, the random turn, the
+#: densification statistics) on CPU tensors too, in the Triton interpreter: the tests set it
+#: to check and count what a GPU runs. One switch for all of them.
+KERNELS_ON_CPU = False
+
+
+def takes_kernels(t: torch.Tensor) -> bool:
+    """Whether the training step's Triton kernels take tensor `t`: on a GPU (or on the CPU with
+    KERNELS_ON_CPU), with triton importable; otherwise the callers' torch/CPU path runs."""
+    if not (t.device.type == "cuda" or (KERNELS_ON_CPU and t.device.type == "cpu")):
+        return False
+    try:
+        import triton  # noqa: F401
+    except ImportError:
+        return False
+    return True

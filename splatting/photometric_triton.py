@@ -137,7 +137,7 @@ if triton is not None:
 
     @triton.jit
     def _finalize(partials, n_parts, out, lambda_l1, lambda_dssim,
-                  HAS_MASK: tl.constexpr, HAS_WEIGHT: tl.constexpr, BLOCK: tl.constexpr):
+                  HAS_WEIGHT: tl.constexpr, BLOCK: tl.constexpr):
         """out = (loss, L1, SSIM, n_L1, n_SSIM): the sums in one fixed order, then the normalisers
         of photometric_loss (a mask alone: L1 over max(3·Σm, 1) as l1_loss, SSIM over 3·Σm)."""
         s_acc = tl.zeros([BLOCK], dtype=out.dtype.element_ty)
@@ -267,7 +267,7 @@ def _launches(pred, gt, mask, weight, win, moments, dmaps, partials, totals, lam
         (_ssim_v, grid, (moments, pred, gt, m, wt, win, dmaps, partials, h, w, *sp, *sg),
          dict(HAS_MASK=has_mask, HAS_WEIGHT=has_weight, **tile)),
         (_finalize, (1,), (partials, grid[0] * grid[1], totals, *lambdas),
-         dict(HAS_MASK=has_mask, HAS_WEIGHT=has_weight, BLOCK=_FINAL_BLOCK, num_warps=4)),
+         dict(HAS_WEIGHT=has_weight, BLOCK=_FINAL_BLOCK, num_warps=4)),
     ]
 
 

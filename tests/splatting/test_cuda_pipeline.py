@@ -5,7 +5,6 @@ on CPU tensors in the Triton interpreter, where the dispatched operations are th
 render would issue."""
 
 import importlib
-import warnings
 
 import pytest
 import torch
@@ -101,12 +100,11 @@ def test_a_training_step_never_waits_for_the_device(tmp_path, monkeypatch):
     trainer does not read it), and the same operations at every step. The losses take the path
     they take on a GPU: the fused Triton loss, the turn's and the statistics' kernels (the compiled
     CPU SSIM, cv2's remap and the torch statistics are what CPU tensors take)."""
-    from gaussians import densify, losses, view_jitter
+    from gaussians import losses
+    from splatting import devices
 
     monkeypatch.setattr(losses, "_cpu_kernels", lambda x: None)
-    monkeypatch.setattr(losses, "FUSED_ON_CPU", True)
-    monkeypatch.setattr(view_jitter, "KERNEL_ON_CPU", True)
-    monkeypatch.setattr(densify, "KERNEL_ON_CPU", True)
+    monkeypatch.setattr(devices, "KERNELS_ON_CPU", True)
     import sys
     from pathlib import Path
 

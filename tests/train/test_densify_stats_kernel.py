@@ -7,9 +7,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from gaussians import densify
-from splatting import densify_triton
 from gaussians.densify import DensifyStats
+from splatting import densify_triton, devices
 from splatting.dispatch_count import DispatchCounter
 
 pytestmark = pytest.mark.skipif(not densify_triton.available(), reason="triton is not installed")
@@ -32,7 +31,7 @@ def test_kernel_statistics_equal_the_torch_update(dtype, monkeypatch):
     ref = DensifyStats.zeros(n, dtype=dtype)
     for seed in range(3):
         ref.add(*_views(n, seed), pixel_scale=163.0, grad_scale=81.5)
-    monkeypatch.setattr(densify, "KERNEL_ON_CPU", True)
+    monkeypatch.setattr(devices, "KERNELS_ON_CPU", True)
     out = DensifyStats.zeros(n, dtype=dtype, device=DEVICE)
     for seed in range(3):
         grad2d, visible, radii = _views(n, seed)
@@ -45,7 +44,7 @@ def test_kernel_statistics_equal_the_torch_update(dtype, monkeypatch):
 
 
 def test_kernel_statistics_are_one_launch(monkeypatch):
-    monkeypatch.setattr(densify, "KERNEL_ON_CPU", True)
+    monkeypatch.setattr(devices, "KERNELS_ON_CPU", True)
     stats = DensifyStats.zeros(100, device=DEVICE)
     grad2d, visible, radii = _views(100, 0)
     args = (grad2d.to(DEVICE), visible.to(DEVICE), radii.to(DEVICE))

@@ -10,10 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from gaussians import view_jitter
-from splatting import turn_triton
 from gaussians.view_jitter import TurnMaps, random_turn, turn_panorama, turn_view_images
 from panogeom.rotate import yaw_matrix
+from splatting import devices, turn_triton
 
 pytestmark = pytest.mark.skipif(not turn_triton.available(), reason="triton is not installed")
 DEVICE = torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -54,7 +53,7 @@ def test_trainer_turn_takes_the_kernel_with_the_same_image_and_mask(monkeypatch)
     rot = random_turn(10.0, g)
     maps = TurnMaps(h, w, device="cpu")
     ref_img, ref_mask = turn_view_images(maps, rot, image.double(), mask, "bicubic")  # grid_sample path
-    monkeypatch.setattr(view_jitter, "KERNEL_ON_CPU", True)
+    monkeypatch.setattr(devices, "KERNELS_ON_CPU", True)
     kmaps = TurnMaps(h, w, device=DEVICE)
     out_img, out_mask = turn_view_images(kmaps, rot, image.to(DEVICE), mask.to(DEVICE), "bicubic")
     assert float((out_img.cpu() - ref_img.float()).abs().max()) < 2e-5
