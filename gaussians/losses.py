@@ -221,9 +221,9 @@ def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_l1: float = 0.
     `weight` ([H,W], >= 0) weighs the per-pixel L1 and SSIM maps (e.g. each pixel's solid angle,
     `solid_angle_weight`); the means are then weighted means over the valid pixels.
 
-    On a GPU (or where ``splatting.devices.KERNELS_ON_CPU`` is set: the interpreter, in tests) the same
-    loss
-    runs as five fused kernels (splatting/photometric_triton.py) instead of ~90 operations."""
+    On a GPU (or where ``splatting.devices.KERNELS_ON_CPU`` is set: the interpreter, in tests)
+    the same loss runs as five fused kernels (splatting/photometric_triton.py) instead of ~90
+    operations."""
     if _fused(pred, gt, lambda_dssim):
         from splatting import photometric_triton
 
