@@ -273,7 +273,8 @@ class Trainer:
         if out.means2d.requires_grad:
             out.means2d.retain_grad()
         lap("losses")
-        terms.loss.backward()
+        # the seed gradient made once (autograd would fill a new one every step)
+        terms.loss.backward(self._consts("one", 1.0, terms.loss.dtype))
         lap("backward")
         with torch.no_grad():
             self._optimiser_step()

@@ -148,9 +148,11 @@ def _mock_launches(dtype_name: str, H: int, W: int, ts: int):
     b = Mock(torch.bool)
     size = f.element_size()
     N = 300_000
-    out = [("forward", rt.forward_launch(f, f, i32, i32, f, f, f, i32, H, W, ts), rt.pairs_per_trip("forward", ts, size)),
-           # training's backward (a photometric loss: the colour's gradient alone), and with depth and alpha
-           ("backward", rt.backward_launch(f, f, i32, i32, f, i32, f, None, None, f, H, W, ts),
+    # training's forward and backward (over a background; a photometric loss: the colour's gradient
+    # alone), and the backward with depth and alpha
+    out = [("forward", rt.forward_launch(f, f, i32, i32, f, f, f, i32, H, W, ts, f),
+            rt.pairs_per_trip("forward", ts, size)),
+           ("backward", rt.backward_launch(f, f, i32, i32, f, i32, f, None, None, f, H, W, ts, f),
             rt.pairs_per_trip("backward", ts, size)),
            ("backward + depth, alpha", rt.backward_launch(f, f, i32, i32, f, i32, f, f, f, f, H, W, ts),
             rt.pairs_per_trip("backward", ts, size))]
@@ -158,9 +160,9 @@ def _mock_launches(dtype_name: str, H: int, W: int, ts: int):
         launch = project_triton.projection_launch(
             Mock(f.dtype, [N, 3]), f, f, f, f, f, f, f, i32, b, f, H, W, ts, True, sh, 16 if sh >= 0 else 1)
         out.append((f"project ({'RGB' if sh < 0 else 'SH 3'})", launch, None))
-        if dtype_name == "float32":  # what training runs; float64's is checked against it in the tests
+        if dtype_name == "float32":  # what training runs (no view-matrix gradient); float64's is checked against it in the tests
             launch = project_triton_backward.backward_launch(
-                Mock(f.dtype, [N, 3]), f, f, f, f, f, b, f, (f, f, f, f, f, f, f), True, sh, 16 if sh >= 0 else 1)
+                Mock(f.dtype, [N, 3]), f, f, f, f, f, b, f, (f, f, f, f, f, f, None), True, sh, 16 if sh >= 0 else 1)
             out.append((f"project backward ({'RGB' if sh < 0 else 'SH 3'})", launch, None))
     if dtype_name == "float32":  # the training loss (splatting/photometric_triton.py), masked and weighted
         from . import photometric_triton as pt

@@ -473,12 +473,15 @@ class TritonProject(torch.autograd.Function):
         ctx.save_for_backward(means, quats, scales, opac, colors, viewmat, visible)
         ctx.setup = (camera, eps2d, near, sh_degree, color_fn_factory)
         ctx.mark_non_differentiable(ints, visible)
+        ctx.set_materialize_grads(False)  # the integer outputs' gradients stay None: no zeros made
         return packed, ints, visible
 
     @staticmethod
     def backward(ctx, g_packed, _g_ints, _g_visible):
         means, quats, scales, opac, colors, viewmat, visible = ctx.saved_tensors
         camera, eps2d, near, sh_degree, color_fn_factory = ctx.setup
+        if g_packed is None:
+            return (None,) * 13
         if TritonProject.REFERENCE_BACKWARD:
             grads = _reference_backward(means, quats, scales, opac, colors, viewmat, visible, g_packed, camera, eps2d,
                                         near, sh_degree, color_fn_factory)
@@ -486,7 +489,7 @@ class TritonProject(torch.autograd.Function):
             from .project_triton_backward import project_backward
 
             grads = project_backward(means, quats, scales, colors, viewmat, visible, g_packed, camera, eps2d, near,
-                                     sh_degree)
+                                     sh_degree, view_grad=ctx.needs_input_grad[5])
         return (*grads, None, None, None, None, None, None)
 
 

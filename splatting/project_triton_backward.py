@@ -117,7 +117,8 @@ if triton is not None:
     @triton.jit
     def _project_bwd(means, quats, scales, colors, viewmat, cam, visible, gP,
                      g_means, g_quats, g_scales, g_opac, g_colors, g_m2d, g_view, N,
-                     EQUIRECT: tl.constexpr, SH_DEGREE: tl.constexpr, K: tl.constexpr, BLOCK: tl.constexpr):
+                     EQUIRECT: tl.constexpr, SH_DEGREE: tl.constexpr, K: tl.constexpr, BLOCK: tl.constexpr,
+                     VIEW_GRAD: tl.constexpr):
         pid = tl.program_id(0)
         i = pid * BLOCK + tl.arange(0, BLOCK)
         ok_i = i < N
@@ -438,37 +439,43 @@ if triton is not None:
         tl.store(g_opac + i, tl.where(valid, tl.load(G + 14, mask=ok_i, other=0), zero), mask=ok_i)
         tl.store(g_m2d + i * 2, tl.where(valid, gm2x, zero), mask=ok_i)
         tl.store(g_m2d + i * 2 + 1, tl.where(valid, gm2y, zero), mask=ok_i)
-        # the view matrix: this program's sums (rows 0-2 of the 4x4; row 3 stays zero)
-        gv = g_view + pid * 16
-        tl.store(gv + 0, tl.sum(tl.where(valid, gv00, zero), axis=0))
-        tl.store(gv + 1, tl.sum(tl.where(valid, gv01, zero), axis=0))
-        tl.store(gv + 2, tl.sum(tl.where(valid, gv02, zero), axis=0))
-        tl.store(gv + 3, tl.sum(tl.where(valid, gtx, zero), axis=0))
-        tl.store(gv + 4, tl.sum(tl.where(valid, gv10, zero), axis=0))
-        tl.store(gv + 5, tl.sum(tl.where(valid, gv11, zero), axis=0))
-        tl.store(gv + 6, tl.sum(tl.where(valid, gv12, zero), axis=0))
-        tl.store(gv + 7, tl.sum(tl.where(valid, gty, zero), axis=0))
-        tl.store(gv + 8, tl.sum(tl.where(valid, gv20, zero), axis=0))
-        tl.store(gv + 9, tl.sum(tl.where(valid, gv21, zero), axis=0))
-        tl.store(gv + 10, tl.sum(tl.where(valid, gv22, zero), axis=0))
-        tl.store(gv + 11, tl.sum(tl.where(valid, gtz, zero), axis=0))
-        tl.store(gv + 12, tl.sum(zero, axis=0))
-        tl.store(gv + 13, tl.sum(zero, axis=0))
-        tl.store(gv + 14, tl.sum(zero, axis=0))
-        tl.store(gv + 15, tl.sum(zero, axis=0))
-
+        if VIEW_GRAD:  # the view matrix: this program's sums (rows 0-2 of the 4x4; row 3 stays zero)
+            gv = g_view + pid * 16
+            tl.store(gv + 0, tl.sum(tl.where(valid, gv00, zero), axis=0))
+            tl.store(gv + 1, tl.sum(tl.where(valid, gv01, zero), axis=0))
+            tl.store(gv + 2, tl.sum(tl.where(valid, gv02, zero), axis=0))
+            tl.store(gv + 3, tl.sum(tl.where(valid, gtx, zero), axis=0))
+            tl.store(gv + 4, tl.sum(tl.where(valid, gv10, zero), axis=0))
+            tl.store(gv + 5, tl.sum(tl.where(valid, gv11, zero), axis=0))
+            tl.store(gv + 6, tl.sum(tl.where(valid, gv12, zero), axis=0))
+            tl.store(gv + 7, tl.sum(tl.where(valid, gty, zero), axis=0))
+            tl.store(gv + 8, tl.sum(tl.where(valid, gv20, zero), axis=0))
+            tl.store(gv + 9, tl.sum(tl.where(valid, gv21, zero), axis=0))
+            tl.store(gv + 10, tl.sum(tl.where(valid, gv22, zero), axis=0))
+            tl.store(gv + 11, tl.sum(tl.where(valid, gtz, zero), axis=0))
+            tl.store(gv + 12, tl.sum(zero, axis=0))
+            tl.store(gv + 13, tl.sum(zero, axis=0))
+            tl.store(gv + 14, tl.sum(zero, axis=0))
+            tl.store(gv + 15, tl.sum(zero, axis=0))
 
 def backward_launch(means, quats, scales, colors, viewmat, camvec, visible, gP, outs, equirect, sh_degree, K):
-    """(kernel, grid, args, options) of the projection's backward, for the launch and the compile check."""
+    """(kernel, grid, args, options) of the projection's backward, for the launch and the compile check;
+    the last of `outs` (the view matrix's per-program sums) None: no gradient for the view matrix."""
     N = means.shape[0]
     grid = (max(1, triton.cdiv(N, BLOCK)),)
-    return (_project_bwd, grid, (means, quats, scales, colors, viewmat, camvec, visible, gP, *outs, N),
-            dict(EQUIRECT=bool(equirect), SH_DEGREE=int(sh_degree), K=int(K), BLOCK=BLOCK, num_warps=2))
+    *grads, g_view = outs
+    view_grad = g_view is not None
+    g_view = grads[0] if g_view is None else g_view  # any pointer: never written without the flag
+    return (_project_bwd, grid, (means, quats, scales, colors, viewmat, camvec, visible, gP, *grads, g_view, N),
+            dict(EQUIRECT=bool(equirect), SH_DEGREE=int(sh_degree), K=int(K), BLOCK=BLOCK, num_warps=2,
+                 VIEW_GRAD=view_grad))
 
 
-def project_backward(means, quats, scales, colors, viewmat, visible, g_packed, camera, eps2d, near, sh_degree):
+def project_backward(means, quats, scales, colors, viewmat, visible, g_packed, camera, eps2d, near, sh_degree,
+                     view_grad: bool = True):
     """Gradients (means, quats, scales, opacities, colours, viewmat, means2d) of the projection
-    from its packed rows' gradient: one kernel and one sum (the view matrix's), no host sync."""
+    from its packed rows' gradient: one kernel and one sum (the view matrix's; with `view_grad`
+    False neither that sum nor its buffer, and the view matrix's gradient is None), no host sync."""
     from .cameras import EquirectCamera
 
     dtype, device = means.dtype, means.device
@@ -483,7 +490,7 @@ def project_backward(means, quats, scales, colors, viewmat, visible, g_packed, c
     # SH coefficients past the degree in use get no gradient: zeros, written by nobody
     g_colors = torch.zeros_like(colors) if deg >= 0 and K > (deg + 1) ** 2 else torch.empty_like(colors)
     g_m2d = torch.empty(N, 2, dtype=dtype, device=device)
-    g_view = torch.empty(nprog, 16, dtype=dtype, device=device)
+    g_view = torch.empty(nprog, 16, dtype=dtype, device=device) if view_grad else None
     if N:
         camvec = _camera_vector(camera, eps2d, near, dtype, device)
         kernel, grid, args, options = backward_launch(
@@ -491,7 +498,7 @@ def project_backward(means, quats, scales, colors, viewmat, visible, g_packed, c
             camvec, visible, g_packed.contiguous(), (g_means, g_quats, g_scales, g_opac, g_colors, g_m2d, g_view),
             isinstance(camera, EquirectCamera), deg, K)
         kernel[grid](*args, **options)
-        g_viewmat = g_view.sum(0).reshape(4, 4)
+        g_viewmat = g_view.sum(0).reshape(4, 4) if view_grad else None
     else:
-        g_viewmat = torch.zeros(4, 4, dtype=dtype, device=device)
+        g_viewmat = torch.zeros(4, 4, dtype=dtype, device=device) if view_grad else None
     return g_means, g_quats, g_scales, g_opac, g_colors, g_viewmat, g_m2d

@@ -80,8 +80,8 @@ if triton is not None:
         return tile, row * W + col, ok
 
     @triton.jit
-    def _raster_fwd(P, dirs, toff, tlist, out_color, out_depth, out_T, out_last, npx, H, W, TS,
-                    BATCH: tl.constexpr, SPLIT: tl.constexpr, BLOCK_PIX: tl.constexpr):
+    def _raster_fwd(P, dirs, toff, tlist, bg, out_color, out_depth, out_T, out_last, npx, H, W, TS,
+                    BATCH: tl.constexpr, SPLIT: tl.constexpr, BLOCK_PIX: tl.constexpr, HAS_BG: tl.constexpr):
         tile, pix, pok = _tile_pixels(tl.program_id(0), H, W, TS, SPLIT, BLOCK_PIX)
         # pixels outside the image get d = 0, hence c = 0: never kept, no mask needed in the loop
         dx = tl.load(dirs + pix * 3, mask=pok, other=0)
@@ -118,6 +118,10 @@ if triton is not None:
                 last = tl.where(inc, k, last)
             live = tl.reduce((T >= _T_MIN).to(tl.int32), 0, _elementwise_max)
             k0 += BATCH
+        if HAS_BG:  # the background behind what is left of the transmittance
+            acc_r += T * tl.load(bg)
+            acc_g += T * tl.load(bg + 1)
+            acc_b += T * tl.load(bg + 2)
         tl.store(out_color + pix * 3, acc_r, mask=pok)
         tl.store(out_color + pix * 3 + 1, acc_g, mask=pok)
         tl.store(out_color + pix * 3 + 2, acc_b, mask=pok)
@@ -127,9 +131,9 @@ if triton is not None:
         tl.store(out_last + pix, last, mask=pok)
 
     @triton.jit
-    def _raster_bwd(P, dirs, toff, tlist, T_final, last_k, g_color, g_depth, g_alpha, gP, H, W, TS,
+    def _raster_bwd(P, dirs, toff, tlist, bg, T_final, last_k, g_color, g_depth, g_alpha, gP, H, W, TS,
                     SPLIT: tl.constexpr, BLOCK_PIX: tl.constexpr, HAS_G_DEPTH: tl.constexpr,
-                    HAS_G_ALPHA: tl.constexpr):
+                    HAS_G_ALPHA: tl.constexpr, HAS_BG: tl.constexpr):
         tile, pix, pok = _tile_pixels(tl.program_id(0), H, W, TS, SPLIT, BLOCK_PIX)
         dx = tl.load(dirs + pix * 3, mask=pok, other=0)
         dy = tl.load(dirs + pix * 3 + 1, mask=pok, other=0)
@@ -145,6 +149,10 @@ if triton is not None:
             gD = tl.load(g_depth + pix, mask=pok, other=0)
         if HAS_G_ALPHA:
             gA = tl.load(g_alpha + pix, mask=pok, other=0)
+        if HAS_BG:
+            # image = Σ w·c + (1 − Σ w)·bg: the background enters each Gaussian's contribution as
+            # the alpha channel does, with the weight −bg·∂L/∂image
+            gA -= gCr * tl.load(bg) + gCg * tl.load(bg + 1) + gCb * tl.load(bg + 2)
         T = tl.load(T_final + pix, mask=pok, other=1)  # transmittance behind the current Gaussian
         last = tl.load(last_k + pix, mask=pok, other=-1)
         behind = dx * 0  # Σ_{j behind} w_j x_j of the Gaussians already visited
@@ -177,7 +185,7 @@ if triton is not None:
                 x = tl.load(row + 15) * gCr + tl.load(row + 16) * gCg + tl.load(row + 17) * gCb
                 if HAS_G_DEPTH:
                     x += tl.load(row + 18) * gD
-                if HAS_G_ALPHA:
+                if HAS_G_ALPHA or HAS_BG:
                     x += gA
                 dLda = T * x - behind * ra
                 behind += w * x
@@ -262,23 +270,26 @@ def pairs_per_trip(kernel: str, ts: int, element_size: int) -> float:
     return max(1, triton.next_power_of_2(ts * ts) // split) / (32 * warps)
 
 
-def forward_launch(P, dirs, toff, tlist, color, depth, T_alpha, last, H, W, ts):
+def forward_launch(P, dirs, toff, tlist, color, depth, T_alpha, last, H, W, ts, background=None):
     """(kernel, grid, args, constexprs and launch options) of the forward: the one place the
     launch is spelled out, used by :class:`TritonRaster` and by the compile check
-    (splatting/kernel_report.py), so the check compiles what runs."""
+    (splatting/kernel_report.py), so the check compiles what runs. `background` [3] or None
+    (the colour is then the Gaussians' alone)."""
     grid, options = _config("forward", H, W, ts, P.element_size())
-    return (_raster_fwd, grid, (P, dirs, toff, tlist, color, depth, T_alpha, last, H * W, H, W, ts),
-            dict(BATCH=BATCH, **options))
+    bg = P if background is None else background  # any pointer: never read without its flag
+    return (_raster_fwd, grid, (P, dirs, toff, tlist, bg, color, depth, T_alpha, last, H * W, H, W, ts),
+            dict(BATCH=BATCH, HAS_BG=background is not None, **options))
 
 
-def backward_launch(P, dirs, toff, tlist, T_final, last, g_color, g_depth, g_alpha, gP, H, W, ts):
+def backward_launch(P, dirs, toff, tlist, T_final, last, g_color, g_depth, g_alpha, gP, H, W, ts, background=None):
     """As :func:`forward_launch`, for the backward; `g_depth` or `g_alpha` None: no gradient
-    reaches that output (the kernel then skips its terms)."""
+    reaches that output (the kernel then skips its terms); `background` as the forward's."""
     grid, options = _config("backward", H, W, ts, P.element_size())
-    flags = dict(HAS_G_DEPTH=g_depth is not None, HAS_G_ALPHA=g_alpha is not None)
+    flags = dict(HAS_G_DEPTH=g_depth is not None, HAS_G_ALPHA=g_alpha is not None, HAS_BG=background is not None)
     g_depth = g_color if g_depth is None else g_depth  # any pointer: never read without its flag
     g_alpha = g_color if g_alpha is None else g_alpha
-    return (_raster_bwd, grid, (P, dirs, toff, tlist, T_final, last, g_color, g_depth, g_alpha, gP, H, W, ts),
+    bg = P if background is None else background
+    return (_raster_bwd, grid, (P, dirs, toff, tlist, bg, T_final, last, g_color, g_depth, g_alpha, gP, H, W, ts),
             dict(options, **flags))
 
 
@@ -292,10 +303,12 @@ def _index32(t):
 
 class TritonRaster(torch.autograd.Function):
     """Same interface and math as :class:`splatting.raster_torch.TorchRaster`; the tile offsets
-    and lists may be int64 (``bin_gaussians_torch``) or int32 (what the kernels index with)."""
+    and lists may be int64 (``bin_gaussians_torch``) or int32 (what the kernels index with).
+    `background` ([3], no gradient) or None: the colour is composited over it in the kernel,
+    which saves the three image-sized passes of the blend and their backward."""
 
     @staticmethod
-    def forward(ctx, P, dirs, toff, tlist, H, W, ts):
+    def forward(ctx, P, dirs, toff, tlist, H, W, ts, background=None):
         dtype, device = P.dtype, P.device
         P = P.contiguous()
         dirs = dirs.to(dtype).contiguous()
@@ -306,15 +319,17 @@ class TritonRaster(torch.autograd.Function):
         depth = torch.empty(npx, dtype=dtype, device=device)
         T_alpha = torch.empty(2, npx, dtype=dtype, device=device)  # final transmittance, 1 − it
         last = torch.empty(npx, dtype=torch.int32, device=device)
-        _launch(*forward_launch(P, dirs, toff, tlist, color, depth, T_alpha, last, H, W, ts))
-        ctx.save_for_backward(P, dirs, toff, tlist, T_alpha[0], last)
+        if background is not None:
+            background = background.to(dtype).contiguous()
+        _launch(*forward_launch(P, dirs, toff, tlist, color, depth, T_alpha, last, H, W, ts, background))
+        ctx.save_for_backward(P, dirs, toff, tlist, T_alpha[0], last, background)
         ctx.set_materialize_grads(False)  # an unused output's gradient stays None: no zeros to read
         ctx.dims = (H, W, ts)
         return color.reshape(H, W, 3), depth.reshape(H, W), T_alpha[1].reshape(H, W)
 
     @staticmethod
     def backward(ctx, g_color, g_depth, g_alpha):
-        P, dirs, toff, tlist, T_final, last = ctx.saved_tensors
+        P, dirs, toff, tlist, T_final, last, background = ctx.saved_tensors
         H, W, ts = ctx.dims
         dtype, device = P.dtype, P.device
 
@@ -324,6 +339,6 @@ class TritonRaster(torch.autograd.Function):
         g_color = torch.zeros((H * W, 3), dtype=dtype, device=device) if g_color is None else flat(g_color, (H * W, 3))
         gP = torch.zeros_like(P)
         _launch(*backward_launch(P, dirs, toff, tlist, T_final, last, g_color, flat(g_depth, (H * W,)),
-                                 flat(g_alpha, (H * W,)), gP, H, W, ts))
-        return gP, None, None, None, None, None, None
+                                 flat(g_alpha, (H * W,)), gP, H, W, ts, background))
+        return gP, None, None, None, None, None, None, None
 

@@ -136,6 +136,7 @@ def render(
                             backend=backend)
     dirs = _pixel_dirs(camera, dtype, device)
     ts = int(tile_size)
+    bg = None if background is None else torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
     if backend == "cuda":
         # projection and binning in Triton kernels: a fixed handful of launches, no host sync
         from .bin_triton import bin_gaussians
@@ -150,7 +151,11 @@ def render(
             means, quats.to(dtype), scales.to(dtype), opacities.to(dtype), colors, viewmat, camera, eps2d, near,
             sh_degree, ts, _color_fn)
         toff, tlist, _ = bin_gaussians(ints, H, W, ts)
-        color, depth, alpha = TritonRaster.apply(packed, dirs, toff, tlist, H, W, ts)
+        if bg is not None and not bg.requires_grad:  # composited in the kernel (a blend outside costs 6 passes)
+            color, depth, alpha = TritonRaster.apply(packed, dirs, toff, tlist, H, W, ts, bg)
+            bg = None
+        else:
+            color, depth, alpha = TritonRaster.apply(packed, dirs, toff, tlist, H, W, ts)
         radii = ints[:, 5]
     else:
         proj = project(
@@ -160,11 +165,7 @@ def render(
         toff, tlist = bin_gaussians_torch(proj.bbox, proj.packed[:, 18].detach(), H, W, ts)
         color, depth, alpha = TorchRaster.apply(proj.packed, dirs, toff, tlist, H, W, ts)
         means2d, radii, visible = proj.means2d, proj.radii, proj.visible
-    if background is not None:
-        bg = torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
-        image = color + (1.0 - alpha)[..., None] * bg
-    else:
-        image = color
+    image = color if bg is None else color + (1.0 - alpha)[..., None] * bg
     return RenderOutput(image=image, alpha=alpha, depth=depth, means2d=means2d, radii=radii, visible=visible,
                         backend=backend)
 
