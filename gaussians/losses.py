@@ -215,19 +215,26 @@ def layout_loss(means: torch.Tensor, u0: torch.Tensor, normals: torch.Tensor, ma
 
 
 def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_l1: float = 0.8, lambda_dssim: float = 0.2,
-                     mask: torch.Tensor | None = None, weight: torch.Tensor | None = None
-                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                     mask: torch.Tensor | None = None, weight: torch.Tensor | None = None, with_psnr: bool = False
+                     ) -> tuple[torch.Tensor, ...]:
     """(λ1·L1 + λ2·(1−SSIM), L1, SSIM) of [H,W,3] images, over `mask`'s valid pixels if given.
     `weight` ([H,W], >= 0) weighs the per-pixel L1 and SSIM maps (e.g. each pixel's solid angle,
-    `solid_angle_weight`); the means are then weighted means over the valid pixels.
+    `solid_angle_weight`); the means are then weighted means over the valid pixels. With
+    `with_psnr`, a fourth value: :func:`psnr_tensor` of the same images and mask (unweighted).
 
     On a GPU (or where ``splatting.devices.KERNELS_ON_CPU`` is set: the interpreter, in tests)
     the same loss runs as five fused kernels (splatting/photometric_triton.py) instead of ~90
-    operations."""
+    operations; they give the PSNR too, from sums they make anyway."""
     if _fused(pred, gt, lambda_dssim):
         from splatting import photometric_triton
 
-        return photometric_triton.photometric_loss(pred, gt, lambda_l1, lambda_dssim, mask=mask, weight=weight)
+        terms = photometric_triton.photometric_loss(pred, gt, lambda_l1, lambda_dssim, mask=mask, weight=weight)
+        return terms if with_psnr else terms[:3]
+    terms = _photometric_loss(pred, gt, lambda_l1, lambda_dssim, mask, weight)
+    return (*terms, psnr_tensor(pred, gt, mask)) if with_psnr else terms
+
+
+def _photometric_loss(pred, gt, lambda_l1, lambda_dssim, mask, weight):
     if weight is None:
         l1 = l1_loss(pred, gt, mask)
         s = ssim(pred, gt, mask=mask) if lambda_dssim > 0 else pred.new_tensor(1.0)

@@ -35,6 +35,9 @@ class LossTerms:
     ssim: torch.Tensor
     layout: torch.Tensor | None = None
     coverage: torch.Tensor | None = None
+    #: PSNR of the render against the view (unweighted, over its mask): the loss's kernels give it
+    #: at no cost on a GPU; None where the loss does not (the crop loss)
+    psnr: torch.Tensor | None = None
 
 
 class TrainingObjective:
@@ -61,10 +64,11 @@ class TrainingObjective:
         if crops is not None:
             photo, l1, s = crop_photometric_loss(pred, crops[1], crops[0], cfg.loss.lambda_l1, cfg.loss.lambda_dssim,
                                                  crops[2])
+            terms = LossTerms(photo, l1, s)
         else:
-            photo, l1, s = photometric_loss(pred, view.image, cfg.loss.lambda_l1, cfg.loss.lambda_dssim, mask=view.mask,
-                                            weight=self._pixel_weight(view))
-        terms = LossTerms(photo, l1, s)
+            photo, l1, s, p = photometric_loss(pred, view.image, cfg.loss.lambda_l1, cfg.loss.lambda_dssim,
+                                               mask=view.mask, weight=self._pixel_weight(view), with_psnr=True)
+            terms = LossTerms(photo, l1, s, psnr=p)
         if cfg.loss.lambda_scale > 0:
             terms.loss = terms.loss + cfg.loss.lambda_scale * torch.exp(g.log_scales).mean() / cfg.extent
         if appearance is not None and cfg.loss.lambda_appearance > 0:

@@ -287,7 +287,7 @@ class Trainer:
         # 0-dim tensors, not floats: reading them would wait for the device every iteration;
         # the log (every log_every iterations) converts them
         lv = terms.loss.detach()
-        p = psnr_tensor(pred, view.image, view.mask)
+        p = terms.psnr if terms.psnr is not None else psnr_tensor(pred, view.image, view.mask)
         self.ema.update(lv, p)
         self.last_loss = lv
         lap("log")

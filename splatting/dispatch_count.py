@@ -31,7 +31,7 @@ _SYNC_PACKETS = {aten._local_scalar_dense, aten.nonzero, aten.masked_select, ate
 # bookkeeping that launches nothing on a device
 _FREE = {aten.detach, aten.view, aten._unsafe_view, aten.alias, aten.t, aten.transpose, aten.permute,
          aten.expand, aten.reshape, aten.squeeze, aten.unsqueeze, aten.select, aten.slice, aten.as_strided,
-         aten.split, aten.unbind, aten.lift_fresh, aten.set_}
+         aten.split, aten.split_with_sizes, aten.unbind, aten.lift_fresh, aten.set_}
 
 
 def _packet(func):

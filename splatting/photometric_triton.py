@@ -11,7 +11,8 @@ launch). Here it is three launches forward and two backward:
   ∂S/∂μ₁, ∂S/∂E[x²], ∂S/∂E[xy] (times the pixel's weight), and per-program partial sums of the
   weighted SSIM map, the weighted L1 map and the weights;
 * forward 3: one program sums the partials in a fixed order (deterministic) and writes the loss,
-  L1 and SSIM with the normalisers of :func:`gaussians.losses.photometric_loss`;
+  L1 and SSIM with the normalisers of :func:`gaussians.losses.photometric_loss`, and the PSNR of
+  :func:`gaussians.losses.psnr_tensor` (the training log's, from sums the pass above makes anyway);
 * backward 1 and 2: the blur of the three ∂S maps (the window is its own adjoint: symmetric, zero
   padding), combined with the L1 term's sign into the image's gradient, read and written in the
   render's [H,W,3] layout (no permute or copy).
@@ -34,7 +35,7 @@ except ImportError:  # the caller checks `available()`
 C1, C2 = 0.01**2, 0.03**2
 WINDOW, SIGMA = 11, 1.5
 _BLOCK_Y, _BLOCK_X = 4, 64  # a program's tile: 2 pixels a thread, no spills (bench kernels)
-_FINAL_BLOCK = 1024
+_FINAL_BLOCK = 512  # six partial sums a program: 4 each a thread keeps the reduction within 64 registers
 
 
 def available() -> bool:
@@ -45,6 +46,8 @@ if triton is not None:
     _R = tl.constexpr(WINDOW // 2)
     _C1 = tl.constexpr(C1)
     _C2 = tl.constexpr(C2)
+    _NPART = tl.constexpr(6)  # partial sums per program (see _ssim_v)
+    _MINUS_10_OVER_LN10 = tl.constexpr(-10.0 / math.log(10.0))  # PSNR = −10·log10(mse)
 
     @triton.jit
     def _blur_v(src, y, x, H, W, win, BY: tl.constexpr, BX: tl.constexpr):
@@ -95,7 +98,8 @@ if triton is not None:
     def _ssim_v(moments, pred, gt, mask, weight, win, dmaps, partials, H, W, sp_y, sp_x, sp_c, sg_y, sg_x, sg_c,
                 HAS_MASK: tl.constexpr, HAS_WEIGHT: tl.constexpr, BY: tl.constexpr, BX: tl.constexpr):
         """The vertical blur, the SSIM map S and u·∂S/∂(μ₁, E[x²], E[xy]) (u: the pixel's weight,
-        1 without mask and weight); partials[program] = (Σ u·S, Σ u·|p − g|, Σ u)."""
+        1 without mask and weight); partials[program] = (Σ u·S, Σ u·|p − g|, Σ u, and for the PSNR
+        Σ m·e², Σ m, Σ e² with e = clamp(p, 0, 1) − g and m the mask, 1 without)."""
         y = tl.program_id(0) * BY + tl.arange(0, BY)[:, None]
         x = tl.program_id(1) * BX + tl.arange(0, BX)[None, :]
         inside = (y < H) & (x < W)
@@ -103,10 +107,12 @@ if triton is not None:
         u = tl.where(inside, 1.0, 0.0).to(dmaps.dtype.element_ty)
         if HAS_MASK:
             u = u * tl.load(mask + y * W + x, mask=inside, other=0.0)
+        m = u
         if HAS_WEIGHT:
             u = u * tl.load(weight + y * W + x, mask=inside, other=0.0)
         s_sum = tl.zeros([BY, BX], dtype=dmaps.dtype.element_ty)
         l1_sum = tl.zeros([BY, BX], dtype=dmaps.dtype.element_ty)
+        se_sum = tl.zeros([BY, BX], dtype=dmaps.dtype.element_ty)  # Σ over channels of e², unmasked
         for c in tl.static_range(3):
             mu1 = _blur_v(moments + (0 + c) * plane, y, x, H, W, win, BY, BX)
             mu2 = _blur_v(moments + (3 + c) * plane, y, x, H, W, win, BY, BX)
@@ -130,28 +136,44 @@ if triton is not None:
             p = tl.load(pred + y * sp_y + x * sp_x + c * sp_c, mask=inside, other=0.0)
             g = tl.load(gt + y * sg_y + x * sg_x + c * sg_c, mask=inside, other=0.0)
             l1_sum += u * tl.abs(p - g)
-        at = partials + (tl.program_id(0) * tl.num_programs(1) + tl.program_id(1)) * 3
+            e = tl.minimum(tl.maximum(p, 0.0), 1.0) - g
+            se_sum += e * e
+        at = partials + (tl.program_id(0) * tl.num_programs(1) + tl.program_id(1)) * _NPART
         tl.store(at + 0, tl.sum(tl.sum(s_sum, axis=1), axis=0))
         tl.store(at + 1, tl.sum(tl.sum(l1_sum, axis=1), axis=0))
         tl.store(at + 2, tl.sum(tl.sum(u, axis=1), axis=0))
+        tl.store(at + 3, tl.sum(tl.sum(m * se_sum, axis=1), axis=0))
+        tl.store(at + 4, tl.sum(tl.sum(m, axis=1), axis=0))
+        tl.store(at + 5, tl.sum(tl.sum(se_sum, axis=1), axis=0))
 
     @triton.jit
-    def _finalize(partials, n_parts, out, lambda_l1, lambda_dssim,
+    def _finalize(partials, n_parts, out, lambda_l1, lambda_dssim, n_pixels,
                   HAS_WEIGHT: tl.constexpr, BLOCK: tl.constexpr):
-        """out = (loss, L1, SSIM, n_L1, n_SSIM): the sums in one fixed order, then the normalisers
-        of photometric_loss (a mask alone: L1 over max(3·Σm, 1) as l1_loss, SSIM over 3·Σm)."""
+        """out = (loss, L1, SSIM, n_L1, n_SSIM, PSNR): the sums in one fixed order, then the
+        normalisers of photometric_loss (a mask alone: L1 over max(3·Σm, 1) as l1_loss, SSIM over
+        3·Σm), and psnr_tensor's PSNR (an all-false mask: over every pixel)."""
         s_acc = tl.zeros([BLOCK], dtype=out.dtype.element_ty)
         l1_acc = tl.zeros([BLOCK], dtype=out.dtype.element_ty)
         u_acc = tl.zeros([BLOCK], dtype=out.dtype.element_ty)
+        mse_acc = tl.zeros([BLOCK], dtype=out.dtype.element_ty)
+        m_acc = tl.zeros([BLOCK], dtype=out.dtype.element_ty)
+        se_acc = tl.zeros([BLOCK], dtype=out.dtype.element_ty)
         for start in range(0, n_parts, BLOCK):
             i = start + tl.arange(0, BLOCK)
             ok = i < n_parts
-            s_acc += tl.load(partials + i * 3 + 0, mask=ok, other=0.0)
-            l1_acc += tl.load(partials + i * 3 + 1, mask=ok, other=0.0)
-            u_acc += tl.load(partials + i * 3 + 2, mask=ok, other=0.0)
+            s_acc += tl.load(partials + i * _NPART + 0, mask=ok, other=0.0)
+            l1_acc += tl.load(partials + i * _NPART + 1, mask=ok, other=0.0)
+            u_acc += tl.load(partials + i * _NPART + 2, mask=ok, other=0.0)
+            mse_acc += tl.load(partials + i * _NPART + 3, mask=ok, other=0.0)
+            m_acc += tl.load(partials + i * _NPART + 4, mask=ok, other=0.0)
+            se_acc += tl.load(partials + i * _NPART + 5, mask=ok, other=0.0)
         s_total = tl.sum(s_acc, axis=0)
         l1_total = tl.sum(l1_acc, axis=0)
         u_total = tl.sum(u_acc, axis=0)
+        m_total = tl.sum(m_acc, axis=0)
+        mse = tl.where(m_total > 0, tl.sum(mse_acc, axis=0) / tl.maximum(3.0 * m_total, 1.0),
+                       tl.sum(se_acc, axis=0) / (3.0 * n_pixels))
+        psnr = tl.log(tl.maximum(mse, 1e-12)) * _MINUS_10_OVER_LN10
         n_ssim = 3.0 * tl.maximum(u_total, 1e-12)
         if HAS_WEIGHT:
             n_l1 = n_ssim
@@ -164,6 +186,7 @@ if triton is not None:
         tl.store(out + 2, ssim)
         tl.store(out + 3, n_l1)
         tl.store(out + 4, n_ssim)
+        tl.store(out + 5, psnr)
 
     @triton.jit
     def _dmaps_h(dmaps, win, out, H, W, BY: tl.constexpr, BX: tl.constexpr):
@@ -266,7 +289,7 @@ def _launches(pred, gt, mask, weight, win, moments, dmaps, partials, totals, lam
         (_moments_h, grid, (pred, gt, m, win, moments, h, w, *sp, *sg), dict(HAS_MASK=has_mask, **tile)),
         (_ssim_v, grid, (moments, pred, gt, m, wt, win, dmaps, partials, h, w, *sp, *sg),
          dict(HAS_MASK=has_mask, HAS_WEIGHT=has_weight, **tile)),
-        (_finalize, (1,), (partials, grid[0] * grid[1], totals, *lambdas),
+        (_finalize, (1,), (partials, grid[0] * grid[1], totals, *lambdas, h * w),
          dict(HAS_WEIGHT=has_weight, BLOCK=_FINAL_BLOCK, num_warps=4)),
     ]
 
@@ -301,18 +324,20 @@ class _FusedPhotometric(torch.autograd.Function):
         tiles = triton.cdiv(h, _BLOCK_Y) * triton.cdiv(w, _BLOCK_X)
         moments = torch.empty((15, h, w), dtype=dt, device=dev)
         dmaps = torch.empty((9, h, w), dtype=dt, device=dev)
-        partials = torch.empty((tiles, 3), dtype=dt, device=dev)
-        totals = torch.empty(5, dtype=dt, device=dev)
+        partials = torch.empty((tiles, 6), dtype=dt, device=dev)
+        totals = torch.empty(6, dtype=dt, device=dev)
         lambdas = (float(lambda_l1), float(lambda_dssim))
         _run(_launches(pred, gt, mask, weight, win, moments, dmaps, partials, totals, lambdas, h, w,
                        _strides(pred), _strides(gt)))
         ctx.save_for_backward(pred, gt, mask, weight, dmaps, totals)
         ctx.lambdas = lambdas
         ctx.set_materialize_grads(False)
-        return totals[0], totals[1], totals[2]
+        psnr = totals[5]
+        ctx.mark_non_differentiable(psnr)
+        return totals[0], totals[1], totals[2], psnr
 
     @staticmethod
-    def backward(ctx, g_loss, g_l1, g_ssim):
+    def backward(ctx, g_loss, g_l1, g_ssim, _g_psnr):
         pred, gt, mask, weight, dmaps, totals = ctx.saved_tensors
         if g_loss is None and g_l1 is None and g_ssim is None:
             return None, None, None, None, None, None
@@ -328,10 +353,11 @@ class _FusedPhotometric(torch.autograd.Function):
 
 def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_l1: float, lambda_dssim: float,
                      mask: torch.Tensor | None = None, weight: torch.Tensor | None = None
-                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(λ1·L1 + λ2·(1 − SSIM), L1, SSIM) of [H,W,3] images as
-    :func:`gaussians.losses.photometric_loss` computes them (11-tap window, σ 1.5, zero padding;
-    `mask` [H,W] bool and `weight` [H,W] as there), differentiable in `pred`."""
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(λ1·L1 + λ2·(1 − SSIM), L1, SSIM, PSNR) of [H,W,3] images as
+    :func:`gaussians.losses.photometric_loss` and :func:`gaussians.losses.psnr_tensor` compute them
+    (11-tap window, σ 1.5, zero padding; `mask` [H,W] bool and `weight` [H,W] as there; the PSNR
+    unweighted, over the mask), differentiable in `pred` (the PSNR not at all)."""
     if not math.isfinite(lambda_l1) or not math.isfinite(lambda_dssim):
         raise ValueError("the loss weights must be finite")
     m = None if mask is None else mask.to(pred.dtype).contiguous()

@@ -21,6 +21,8 @@ compare it with; it replaced ~760 element-wise launches per backward (issue 35).
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from .project import PACK
@@ -483,13 +485,17 @@ def project_backward(means, quats, scales, colors, viewmat, visible, g_packed, c
     K = colors.shape[1] if colors.dim() == 3 else 1
     deg = -1 if colors.dim() == 2 else int(sh_degree)
     nprog = max(1, triton.cdiv(N, BLOCK))
-    g_means = torch.empty_like(means)
-    g_quats = torch.empty_like(quats)
-    g_scales = torch.empty_like(scales)
-    g_opac = torch.empty(N, dtype=dtype, device=device)
-    # SH coefficients past the degree in use get no gradient: zeros, written by nobody
-    g_colors = torch.zeros_like(colors) if deg >= 0 and K > (deg + 1) ** 2 else torch.empty_like(colors)
-    g_m2d = torch.empty(N, 2, dtype=dtype, device=device)
+    # the gradients are views of one buffer: one allocation, not six (autograd keeps them as they
+    # are: each view is contiguous with its parameter's layout). Each starts 16-byte aligned, as
+    # a buffer of its own would: Triton specialises a launch on its pointers' alignment
+    shapes = (means.shape, quats.shape, scales.shape, (N,), colors.shape, (N, 2))
+    sizes = [math.prod(shape) for shape in shapes]
+    padded = [-(-n // 4) * 4 for n in sizes]
+    buffer = torch.empty(sum(padded), dtype=dtype, device=device)
+    g_means, g_quats, g_scales, g_opac, g_colors, g_m2d = (
+        flat[:n].view(shape) for flat, n, shape in zip(buffer.split(padded), sizes, shapes))
+    if deg >= 0 and K > (deg + 1) ** 2:
+        g_colors.zero_()  # SH coefficients past the degree in use get no gradient: zeros, written by nobody
     g_view = torch.empty(nprog, 16, dtype=dtype, device=device) if view_grad else None
     if N:
         camvec = _camera_vector(camera, eps2d, near, dtype, device)

@@ -20,7 +20,7 @@ def _both(pred, gt, mask=None, weight=None, lambdas=(0.8, 0.2), upstream=(1.0, 0
     out = []
     for fn in (photometric_triton.photometric_loss, losses.photometric_loss):
         p = pred.detach().clone().requires_grad_(True)
-        terms = fn(p, gt, *lambdas, mask=mask, weight=weight)
+        terms = fn(p, gt, *lambdas, mask=mask, weight=weight)[:3]
         sum(k * t for k, t in zip(upstream, terms)).backward()
         out.append((torch.stack([t.detach() for t in terms]), p.grad))
     return out
@@ -44,6 +44,33 @@ def test_fused_loss_equals_the_torch_loss(dtype, shape, case):
     tol = 1e-12 if dtype == torch.float64 else 2e-6
     assert torch.allclose(fused, ref, rtol=tol, atol=tol), (fused, ref)
     assert float((g_fused - g_ref).abs().max()) <= tol * float(g_ref.abs().max())
+
+
+@pytest.mark.parametrize("dtype, case", [(torch.float64, "mask+weight"), (torch.float64, "empty mask"),
+                                         (torch.float32, "plain"), (torch.float64, "equal")])
+def test_fused_loss_gives_the_training_logs_psnr(dtype, case):
+    """The fourth value is psnr_tensor's PSNR of the same images: the render clamped to [0, 1]
+    (values outside it here), over the mask and unweighted (the loss's weight does not enter),
+    every pixel for an all-false mask, and a finite 120 dB (mse floored at 1e-12) for equal images."""
+    g = torch.Generator().manual_seed(4)
+    h, w = 9, 70  # 3x2 tiles of 4x64
+    gt = torch.rand(h, w, 3, dtype=dtype, generator=g).to(DEVICE)
+    pred = (gt + 0.3 * torch.randn(h, w, 3, dtype=dtype, generator=g).to(DEVICE)).requires_grad_(True)
+    if case == "equal":
+        pred = gt.clone().requires_grad_(True)
+    mask = {"mask+weight": (torch.rand(h, w, generator=g) > 0.3).to(DEVICE),
+            "empty mask": torch.zeros(h, w, dtype=torch.bool, device=DEVICE)}.get(case)
+    weight = losses.solid_angle_weight(h, w, dtype, DEVICE) if "weight" in case else None
+    fused = photometric_triton.photometric_loss(pred, gt, 0.8, 0.2, mask=mask, weight=weight)[3]
+    ref = losses.psnr_tensor(pred, gt, mask)
+    assert float((pred.detach() < 0).sum() + (pred.detach() > 1).sum()) > 0 or case == "equal"
+    assert not fused.requires_grad and fused.dtype == dtype
+    tol = 1e-10 if dtype == torch.float64 else 1e-4
+    if case == "equal":  # the kernel's 1e-12 floor is a float32 literal: 120 dB to 2e-8
+        tol = 1e-6
+    assert abs(float(fused) - float(ref)) <= tol, (float(fused), float(ref))
+    if case == "equal":
+        assert float(fused) == pytest.approx(120.0)
 
 
 def test_fused_loss_of_an_empty_mask_and_flat_images_is_finite():
@@ -84,7 +111,7 @@ def test_fused_loss_is_five_launches_and_a_few_allocations(monkeypatch):
     mask = torch.rand(h, w, device=DEVICE) > 0.2
     losses.photometric_loss(pred, gt, 0.8, 0.2, mask=mask)  # the window, made once per dtype and device
     with DispatchCounter() as counter:
-        loss, _, _ = losses.photometric_loss(pred, gt, 0.8, 0.2, mask=mask)
+        loss, _, _, _ = losses.photometric_loss(pred, gt, 0.8, 0.2, mask=mask, with_psnr=True)
         loss.backward()
     assert sum(counter.kernels.values()) == 5, counter.summary()
     # + 5 allocations (no launch), the mask's conversion and backward()'s seed: 13
