@@ -10,10 +10,33 @@
 # Switches: BENCH_KERNELS=0 skips the compile report (it needs no GPU: run it elsewhere);
 # SCENE and UPSTREAM (a run folder of SCENE with the stages before train done, e.g. on a machine
 # with open3d) make bench train and the profile train from there instead of preparing the demo.
+# `scripts/gpu_check.sh prep` (here, where open3d is) prepares that: the demo scene simulated at
+# 512x1024 with layout and depth in .gpuprep/demo512, its run until align in .gpuprep/upstream512,
+# both packed into .gpucarry/prep.tgz for a GPU machine without open3d (docs/gpu.md). Prepare at
+# the commit the GPU runs: the upstream stages' cache keys include their code.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
 [ -x "$PY" ] || PY=python3
+if [ "${1:-}" = prep ]; then
+    PYTHONPATH=$PWD "$PY" - <<'PREP'
+from pathlib import Path
+
+import simulate
+from pipeline.bench_train import _run_in
+
+root = Path(".gpuprep").resolve()
+scene = root / "demo512"
+if not scene.exists():
+    simulate.generate_scene(scene, preset="demo", height=512, with_layout=True, with_depth=True)
+config = {"train": {"preset": "paper", "device": "cuda", "height": 512}, "evaluate": {"device": "cuda"}}
+_run_in(Path(".").resolve(), scene, root / "upstream512", config, "align")
+PREP
+    mkdir -p .gpucarry
+    tar czf .gpucarry/prep.tgz .gpuprep
+    du -h .gpucarry/prep.tgz
+    exit 0
+fi
 pano() {  # the installed entry point, else the module (the project on PYTHONPATH)
     local exe; exe=$(dirname "$PY")/pano-pipe
     if [ -x "$exe" ]; then "$exe" "$@"; else "$PY" -m pipeline.cli "$@"; fi
