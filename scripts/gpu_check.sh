@@ -50,7 +50,7 @@ if [ "${BENCH_KERNELS:-1}" != 0 ]; then
     pano bench kernels --out "$OUT" 2>&1 | tee "$OUT/bench_kernels.log" || status=1
 fi
 # the tests first: a wrong kernel makes its timings meaningless
-"$PY" -m pytest -q -p no:cacheprovider -m cuda tests/splatting tests/train 2>&1 | tee "$OUT/tests.txt" || status=1
+"$PY" -m pytest -q -p no:cacheprovider -m cuda tests/splatting tests/gaussians tests/train 2>&1 | tee "$OUT/tests.txt" || status=1
 pano bench render --device cuda --out "$OUT" 2>&1 | tee "$OUT/bench_render.log" || status=1
 if [ -n "${UPSTREAM:-}" ]; then
     "$PY" scripts/profile_train_step.py "$SCENE" "$UPSTREAM" --device cuda --out "$OUT" 2>&1 \

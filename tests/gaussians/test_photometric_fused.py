@@ -11,7 +11,9 @@ from gaussians import losses
 from splatting import devices, photometric_triton
 from splatting.dispatch_count import DispatchCounter
 
-pytestmark = pytest.mark.skipif(not photometric_triton.available(), reason="triton is not installed")
+# `cuda`: `make gpu-check` runs these with the compiled kernels
+pytestmark = [pytest.mark.skipif(not photometric_triton.available(), reason="triton is not installed"),
+              pytest.mark.cuda]
 DEVICE = torch.device("cuda" if torch.cuda.is_available() else "cpu")
 
 

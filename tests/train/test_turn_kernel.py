@@ -14,7 +14,9 @@ from gaussians.view_jitter import TurnMaps, random_turn, turn_panorama, turn_vie
 from panogeom.rotate import yaw_matrix
 from splatting import devices, turn_triton
 
-pytestmark = pytest.mark.skipif(not turn_triton.available(), reason="triton is not installed")
+# `cuda`: `make gpu-check` runs these with the compiled kernels
+pytestmark = [pytest.mark.skipif(not turn_triton.available(), reason="triton is not installed"),
+              pytest.mark.cuda]
 DEVICE = torch.device("cuda" if torch.cuda.is_available() else "cpu")
 
 
