@@ -129,8 +129,8 @@ def test_a_training_step_never_waits_for_the_device(tmp_path, monkeypatch):
     expected = {} if DEVICE.type == "cuda" else {"_local_scalar_dense": 1}
     assert all(dict(c.sync_ops) == expected for c in counts), [c.summary() for c in counts]
     assert counts[0].ops == counts[1].ops and counts[0].kernels == counts[1].kernels
-    # 53 here, 16 of them allocations that launch nothing, so 37 that do work (on a GPU 57 and 41:
-    # five nan_to_num_ instead of the flag's read); 74 before the background went into the raster
+    # 53 here, 16 of them allocations that launch nothing, so 37 that do work (on a GPU 58 and 42:
+    # five nan_to_num_ instead of the flag's read, the pair count's copy to the host); 74 before the background went into the raster
     # kernels and the PSNR into the loss's, 171 before the fused loss, the turn's and the statistics'
     # kernels and the optimiser's and the log's cuts, ~1,400 before the projection's gradient
     # kernel. docs/gpu.md has them by part. Issue 35 asks for at most 60.
