@@ -30,7 +30,7 @@ VARIANTS: dict[str, dict] = {
     "360+reg": {"projection": "360", "layout_reg": True},
 }
 
-METRICS = (("psnr", 2), ("ssim", 3), ("ws_psnr", 2), ("lpips", 3), ("num_gaussians", 0),
+METRICS = (("psnr", 2), ("ssim", 3), ("ws_psnr", 2), ("psnr_colorfit", 2), ("lpips", 3), ("num_gaussians", 0),
            ("train_seconds", 0))
 
 
@@ -69,7 +69,7 @@ def table(runs: list[dict], reference: str | None = None) -> str:
     for r in runs:
         by.setdefault(r["variant"], []).append(r)
     head = "| variant | seeds | " + " | ".join(
-        ("PSNR", "SSIM", "WS-PSNR", "LPIPS", "Gaussians", "train s")) + " | Δ PSNR vs " + (reference or "—") + " |"
+        ("PSNR", "SSIM", "WS-PSNR", "colour-fit PSNR", "LPIPS", "Gaussians", "train s")) + " | Δ PSNR vs " + (reference or "—") + " |"
     lines = [head, "|" + "---|" * (len(METRICS) + 3)]
     ref = by.get(reference or "", [])
     ref_mu = np.mean([r["psnr"] for r in ref]) if ref else math.nan
