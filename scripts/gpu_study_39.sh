@@ -16,7 +16,9 @@
 #                                            trainings share one GPU well); per scene a JSON-lines
 #                                            file of scripts/study_360.py and a log in $OUT
 # then here: python scripts/study_360.py SCENE --out $OUT/<scene>.jsonl --table
-# Switches (run): SEEDS (default 3); DEVICE=cpu and STUDY_SETS="--set train.iterations=20
+# Switches (run): SEEDS (default 3); VARIANTS (default "crops 360": study_360.py variants, e.g.
+# add "360/rbg+gauge10:random_background=true,lambda_appearance_gauge=10"
+# "crops/gauge10:lambda_appearance_gauge=10", the candidates of docs/training.md); DEVICE=cpu and STUDY_SETS="--set train.iterations=20
 # --set train.height=32" try the run half without a GPU, in miniature.
 # The prep must be run at the commit the GPU runs: the upstream stages' cache keys include
 # their code.
@@ -56,13 +58,15 @@ run)
     if [ "$DEVICE" = cuda ]; then
         "$PY" -c "import sys, torch; sys.exit(0 if torch.cuda.is_available() else 'gpu_study_39: no CUDA device')"
     fi
+    variants=()
+    for v in ${VARIANTS:-crops 360}; do variants+=(--variant "$v"); done
     pids=()
     for s in "${SCENES[@]}"; do
         for seed in $(seq 0 $((${SEEDS:-3} - 1))); do
             # shellcheck disable=SC2086
             "$PY" scripts/study_360.py "$PREP/${SCENE_DIR[$s]}" --base "$PREP/base_$s" --out "$PREP/$s-s$seed.jsonl" \
                 --first-seed "$seed" --seeds 1 "${COMMON[@]}" ${EXTRA[$s]} --set train.preset=paper \
-                --set train.device="$DEVICE" ${STUDY_SETS:-} --variant crops --variant 360 > "$PREP/$s-s$seed.log" 2>&1 &
+                --set train.device="$DEVICE" ${STUDY_SETS:-} "${variants[@]}" > "$PREP/$s-s$seed.log" 2>&1 &
             pids+=($!)
         done
     done
