@@ -14,7 +14,8 @@
 #   bash scripts/gpu_study_39.sh run         on the GPU (OUT set): one process per scene and seed,
 #                                            all at once (the step is partly host-bound: several
 #                                            trainings share one GPU well); per scene a JSON-lines
-#                                            file of scripts/study_360.py and a log in $OUT
+#                                            file of scripts/study_360.py, a log and the runs'
+#                                            diagnosis (scripts/openmvg_sparse_scene.py diagnose) in $OUT
 # then here: python scripts/study_360.py SCENE --out $OUT/<scene>.jsonl --table
 # Switches (run): SEEDS (default 3); VARIANTS (default "crops 360": study_360.py variants, e.g.
 # add "360/rbg+gauge10:random_background=true,lambda_appearance_gauge=10"
@@ -75,6 +76,9 @@ run)
     for s in "${SCENES[@]}"; do
         cat "$PREP/$s"-s*.jsonl > "$OUT/$s.jsonl" 2>/dev/null || true
         tail -n 5 "$PREP/$s"-s*.log > "$OUT/$s.log" 2>&1 || true
+        # holes, brightness, the appearance gauge, near/far and latitude bands of every run (docs/training.md)
+        "$PY" scripts/openmvg_sparse_scene.py diagnose "$PREP/${SCENE_DIR[$s]}" "$PREP/$s"-s*-runs/* \
+            > "$OUT/$s.diagnose.md" 2>&1 || status=1
     done
     echo "gpu_study_39: outputs in $OUT (status $status)"
     exit $status
