@@ -160,7 +160,8 @@ def _mock_launches(dtype_name: str, H: int, W: int, ts: int):
         launch = project_triton.projection_launch(
             Mock(f.dtype, [N, 3]), f, f, f, f, f, f, f, i32, b, f, H, W, ts, True, sh, 16 if sh >= 0 else 1)
         out.append((f"project ({'RGB' if sh < 0 else 'SH 3'})", launch, None))
-        if dtype_name == "float32":  # what training runs (no view-matrix gradient); float64's is checked against it in the tests
+        # what training runs (no view-matrix gradient); float64's is checked against it in the tests
+        if dtype_name == "float32":
             launch = project_triton_backward.backward_launch(
                 Mock(f.dtype, [N, 3]), f, f, f, f, f, b, f, (f, f, f, f, f, f, None), True, sh, 16 if sh >= 0 else 1)
             out.append((f"project backward ({'RGB' if sh < 0 else 'SH 3'})", launch, None))

@@ -36,6 +36,9 @@ C1, C2 = 0.01**2, 0.03**2
 WINDOW, SIGMA = 11, 1.5
 _BLOCK_Y, _BLOCK_X = 4, 64  # a program's tile: 2 pixels a thread, no spills (bench kernels)
 _FINAL_BLOCK = 512  # six partial sums a program: 4 each a thread keeps the reduction within 64 registers
+#: per-program partial sums of _ssim_v (Σ u·S, Σ u·|p − g|, Σ u, Σ m·e², Σ m, Σ e²) and _finalize's
+#: outputs (loss, L1, SSIM, n_L1, n_SSIM, PSNR)
+_NUM_PARTIALS = _NUM_TOTALS = 6
 
 
 def available() -> bool:
@@ -46,7 +49,7 @@ if triton is not None:
     _R = tl.constexpr(WINDOW // 2)
     _C1 = tl.constexpr(C1)
     _C2 = tl.constexpr(C2)
-    _NPART = tl.constexpr(6)  # partial sums per program (see _ssim_v)
+    _NPART = tl.constexpr(_NUM_PARTIALS)
     _MINUS_10_OVER_LN10 = tl.constexpr(-10.0 / math.log(10.0))  # PSNR = −10·log10(mse)
 
     @triton.jit
@@ -324,8 +327,8 @@ class _FusedPhotometric(torch.autograd.Function):
         tiles = triton.cdiv(h, _BLOCK_Y) * triton.cdiv(w, _BLOCK_X)
         moments = torch.empty((15, h, w), dtype=dt, device=dev)
         dmaps = torch.empty((9, h, w), dtype=dt, device=dev)
-        partials = torch.empty((tiles, 6), dtype=dt, device=dev)
-        totals = torch.empty(6, dtype=dt, device=dev)
+        partials = torch.empty((tiles, _NUM_PARTIALS), dtype=dt, device=dev)
+        totals = torch.empty(_NUM_TOTALS, dtype=dt, device=dev)
         lambdas = (float(lambda_l1), float(lambda_dssim))
         _run(_launches(pred, gt, mask, weight, win, moments, dmaps, partials, totals, lambdas, h, w,
                        _strides(pred), _strides(gt)))

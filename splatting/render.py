@@ -122,12 +122,12 @@ def render(
     H, W = int(camera.height), int(camera.width)
     viewmat = viewmat.to(device=device, dtype=dtype)
     extra = (colors,) + ((background,) if isinstance(background, torch.Tensor) else ())
+    bg = None if background is None else torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
     if backend == "cpp":
         image, alpha, depth, means2d, radii, visible = _render_cpp(
             means, quats.to(dtype), scales.to(dtype), opacities.to(dtype), colors.to(dtype), sh_degree, viewmat,
             camera, eps2d, near, int(tile_size), extra)
-        if background is not None:
-            bg = torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
+        if bg is not None:
             # a black background that needs no gradient adds nothing: skip three image-sized
             # operations and their backward (reading bg costs nothing on the CPU)
             if bg.requires_grad or bool(bg.any()):
@@ -136,7 +136,6 @@ def render(
                             backend=backend)
     dirs = _pixel_dirs(camera, dtype, device)
     ts = int(tile_size)
-    bg = None if background is None else torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
     if backend == "cuda":
         # projection and binning in Triton kernels: a fixed handful of launches, no host sync
         from .bin_triton import bin_gaussians

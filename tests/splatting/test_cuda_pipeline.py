@@ -135,7 +135,8 @@ def test_a_training_step_never_waits_for_the_device(tmp_path, monkeypatch):
     # kernels and the optimiser's and the log's cuts, ~1,400 before the projection's gradient
     # kernel. docs/gpu.md has them by part. Issue 35 asks for at most 60.
     assert counts[0].device_ops <= 60, counts[0].summary()
-    assert "rsub" not in counts[0].ops and "log10" not in counts[0].ops  # the blend and the PSNR are in kernels
+    # the background's blend and the PSNR are in kernels
+    assert "rsub" not in counts[0].ops and "log10" not in counts[0].ops
 
 
 def test_first_render_sizes_the_pair_list_once(monkeypatch):
