@@ -8,7 +8,6 @@ export the standard 3DGS PLY. The math lives in gaussians/. See docs/training.md
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import signal
@@ -24,17 +23,17 @@ from pydantic import Field, model_validator
 from rich.markup import escape
 
 import splatting
+from gaussians.config import TrainConfig
 from gaussians.init import from_cloud, random_points
 from gaussians.model import DEFAULT_EPS2D, Gaussians
 from gaussians.ply import nonfinite_problem, save_ply
-from gaussians.config import TrainConfig
 from gaussians.trainer import CHECKPOINT_NAME, Trainer, TrainView, scene_extent
 from panogeom.equirect import angles_to_pixel, dirs_to_angles
 from panogeom.images import read_rgb
 from runfs.errors import PanoError, one_line
-from schemas.scene_loader import valid_mask
 from runtime.stage import StageContext
 from schemas.scene import Scene, View
+from schemas.scene_loader import valid_mask
 from schemas.stage_params import StageParams
 from schemas.train import CropRig, TrainOutput
 
@@ -178,6 +177,9 @@ class Params(StageParams):
     densify_every: int = Field(default=_TRAINER["densify_every"], ge=1, description="Iterations between densification steps.")
     densify_grad_threshold: float = Field(
         default=_TRAINER["densify_grad_threshold"], gt=0, description="On the angular view-space gradient (resolution independent).")
+    densify_per_steradian: bool = Field(
+        default=_TRAINER["densify_per_steradian"],
+        description="360: × cos(latitude) on each Gaussian's densification statistic (every steradian counts alike).")
     percent_dense: float = Field(
         default=_TRAINER["percent_dense"], gt=0, description="Gaussians larger than this × extent are split, smaller ones cloned.")
     min_opacity: float = Field(
