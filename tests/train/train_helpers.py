@@ -26,14 +26,14 @@ def tiny_scene(root: Path, seed: int = 0) -> Path:
     return root
 
 
-def load_views(root: Path, split: str = "train") -> list[TrainView]:
+def load_views(root: Path, split: str = "train", height: int = H) -> list[TrainView]:
     m = SceneManifest.model_validate_json((root / "scene.json").read_text())
     views = m.train_views() if split == "train" else m.test_views()
     out = []
     for v in views:
-        img = torch.from_numpy(read_rgb(root / v.image, size=(H, 2 * H)))
+        img = torch.from_numpy(read_rgb(root / v.image, size=(height, 2 * height)))
         out.append(TrainView(v.name, img, torch.tensor(v.viewmat, dtype=torch.float32),
-                             splatting.EquirectCamera(H, 2 * H)))
+                             splatting.EquirectCamera(height, 2 * height)))
     return out
 
 
