@@ -68,6 +68,7 @@ def add_launch(grad2d, visible, radii, weight, grad_accum, count, max_radius, n,
     """(kernel, grid, args, options): spelled out once, for `add_` and the compile check (`weight`
     None: the unweighted kernel; grad_accum stands in for the pointer it never reads)."""
     has_weight = weight is not None
-    return (_add, (triton.cdiv(n, _BLOCK),),
+    # -(-a // b) = ⌈a/b⌉ in Python ints: triton.cdiv costs microseconds a call on the host, every step
+    return (_add, (-(-n // _BLOCK),),
             (grad2d, visible, radii, weight if has_weight else grad_accum, grad_accum, count, max_radius, n, s_grad,
              s_vis, s_rad, float(scale), float(pixel_scale)), dict(HAS_WEIGHT=has_weight, BLOCK=_BLOCK, num_warps=4))

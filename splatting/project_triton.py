@@ -438,7 +438,8 @@ def projection_launch(means, quats, scales, opac, colors, viewmat, camvec, packe
                       equirect, sh_degree, K):
     """(kernel, grid, args, options) of the projection, for the launch and the compile check."""
     N = means.shape[0]
-    grid = (max(1, triton.cdiv(N, BLOCK)),)
+    # -(-a // b) = ⌈a/b⌉ in Python ints: triton.cdiv costs microseconds a call on the host, every step
+    grid = (max(1, -(-N // BLOCK)),)
     return (_project_fwd, grid, (means, quats, scales, opac, colors, viewmat, camvec, packed, ints, visible, m2d,
                                  N, H, W, ts),
             dict(EQUIRECT=bool(equirect), SH_DEGREE=int(sh_degree), K=int(K), BLOCK=BLOCK, num_warps=2))
