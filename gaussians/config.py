@@ -76,10 +76,6 @@ class DensifyConfig:
     densify_until: int = 15000
     densify_every: int = 100
     densify_grad_threshold: float = 2e-4
-    #: panoramas: × cos(latitude) of each Gaussian's centre on its statistic, so the threshold counts
-    #: every steradian alike (a mean over equirectangular pixels weighs latitude θ by 1/cos θ, and so
-    #: favours splitting near the poles); a no-op where `solid_angle_weighting` already weighs the loss so
-    densify_per_steradian: bool = False
     percent_dense: float = 0.01
     min_opacity: float = 0.005
     opacity_reset_every: int = 3000

@@ -12,12 +12,8 @@ steradian more than a mean over the whole sphere (a 120° crop 1.6×, a 90° cub
 face 4.9× at its centre), the second factor puts panoramas and perspective
 crops on the same footing: the same splat with the same pixel errors gets the
 same statistic in both. For an equirectangular camera the factor is exactly
-the pixels per radian.
-
-That normalisation holds at the equator only: a mean over equirectangular pixels
-weighs latitude θ by 1/cos θ per steradian, so the same error near a pole gives
-a larger statistic. `latitude_weight` (`densify_per_steradian`) takes the cos θ
-back out, per Gaussian, so the threshold counts every steradian alike.
+the pixels per radian. Like the mean loss it is the gradient of, it weighs latitude θ by
+1/cos θ per steradian (a per-steradian statistic was measured and lost: docs/training.md).
 
 Layout Gaussians stay layout Gaussians: a split samples its children's
 offsets in the plane (the offset's component along the plane normal is
@@ -36,7 +32,7 @@ from gaussians.model import Gaussians
 from gaussians.optim import Adam
 
 __all__ = ["DensifyStats", "densify_and_prune", "reset_opacity", "quat_to_rotmat", "DensifyResult",
-           "gradient_scale", "latitude_weight"]
+           "gradient_scale"]
 
 #: The weight a mean loss over an equirectangular image gives one steradian near its equator:
 #: 1 / (W·W/2 pixels) per pixel of (2π/W)² sr = 1 / (2π²), independent of W.
@@ -51,16 +47,6 @@ def gradient_scale(camera) -> float:
     s = float(camera.pixel_scale[0])
     weight_per_sr = s * s / (int(camera.width) * int(camera.height))
     return s * EQUIRECT_WEIGHT_PER_SR / weight_per_sr
-
-
-def latitude_weight(means: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
-    """cos(latitude) [N] of each centre seen from the camera `viewmat` (world → camera, OpenCV
-    axes, so latitude is measured from the x–z plane): the solid angle of a panorama pixel at that
-    latitude over one at the equator. A centre at the camera gets 1."""
-    t = means @ viewmat[:3, :3].T + viewmat[:3, 3]
-    horizontal = torch.hypot(t[:, 0], t[:, 2])
-    dist = torch.linalg.vector_norm(t, dim=-1)
-    return torch.where(dist > 0, horizontal / dist.clamp_min(1e-30), torch.ones_like(dist))
 
 
 def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
@@ -91,11 +77,10 @@ class DensifyStats:
 
     @torch.no_grad()
     def add(self, grad2d: torch.Tensor, visible: torch.Tensor, radii: torch.Tensor, pixel_scale: float,
-            grad_scale: float | None = None, weight: torch.Tensor | None = None) -> None:
+            grad_scale: float | None = None) -> None:
         """Accumulate one rendered view: `grad2d` = means2d.grad [N,2] (pixels), `radii` pixels,
         `pixel_scale` pixels per radian; `grad_scale` multiplies ‖grad2d‖ (default `pixel_scale`;
-        the trainer passes `gradient_scale(camera)`), and `weight` [N], if given, each Gaussian's
-        (`latitude_weight`)."""
+        the trainer passes `gradient_scale(camera)`)."""
         if grad2d is None:
             return
         scale = float(pixel_scale if grad_scale is None else grad_scale)
@@ -103,11 +88,9 @@ class DensifyStats:
             from splatting import densify_triton
 
             densify_triton.add_(grad2d, visible, radii, self.grad_accum, self.count, self.max_radius, scale,
-                                float(pixel_scale), weight)
+                                float(pixel_scale))
             return
         g = torch.linalg.vector_norm(grad2d.to(self.grad_accum.dtype), dim=-1) * scale
-        if weight is not None:
-            g = g * weight.to(g.dtype)
         g = torch.nan_to_num(g, nan=0.0, posinf=0.0, neginf=0.0)
         vis = visible & (radii > 0)
         self.grad_accum += torch.where(vis, g, torch.zeros_like(g))

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from gaussians.densify import DensifyStats, densify_and_prune, gradient_scale, latitude_weight, reset_opacity
+from gaussians.densify import DensifyStats, densify_and_prune, gradient_scale, reset_opacity
 from gaussians.mip_filter import filter_variance, reset_cap_logits, sampling_rate
 from gaussians.model import Gaussians
 from gaussians.optim import Adam
@@ -32,8 +32,6 @@ class DensifyStrategy:
     stop: int
     every: int
     grad_threshold: float
-    #: panoramas: weigh each Gaussian's statistic by cos(latitude) (`latitude_weight`)
-    per_steradian: bool
     percent_dense: float
     extent: float
     min_opacity: float
@@ -54,10 +52,7 @@ class DensifyStrategy:
         """The strategy a TrainConfig describes, with empty statistics for model `g`."""
         return cls(
             start=cfg.densify.densify_from, stop=cfg.densify.densify_until, every=cfg.densify.densify_every,
-            grad_threshold=cfg.densify.densify_grad_threshold,
-            # a solid-angle-weighted loss already counts every steradian alike
-            per_steradian=cfg.densify.densify_per_steradian and not cfg.loss.solid_angle_weighting,
-            percent_dense=cfg.densify.percent_dense, extent=cfg.extent,
+            grad_threshold=cfg.densify.densify_grad_threshold, percent_dense=cfg.densify.percent_dense, extent=cfg.extent,
             min_opacity=cfg.densify.min_opacity,
             max_world_scale=cfg.densify.max_world_scale * cfg.extent if cfg.densify.max_world_scale else None,
             max_screen_radius=cfg.densify.max_screen_radius, size_prune_from=cfg.densify.size_prune_from,
@@ -71,19 +66,15 @@ class DensifyStrategy:
             return it >= self.size_prune_from
         return self.opacity_reset_every > 0 and it > self.opacity_reset_every
 
-    def step_post_backward(self, g: Gaussians, opt: Adam, out, camera, viewmat: torch.Tensor, it: int, views,
+    def step_post_backward(self, g: Gaussians, opt: Adam, out, camera, it: int, views,
                            generator: torch.Generator) -> Gaussians:
-        """After iteration `it`'s optimiser step: gather `out`'s (the render's, from `camera` at
-        `viewmat`) statistics, and on the schedule densify and reset. Returns the model to train on
-        (a new object after densification, `g` otherwise). `views` give the sampling rates of
-        Mip-Splatting's reset."""
+        """After iteration `it`'s optimiser step: gather `out`'s (the render's) statistics, and on
+        the schedule densify and reset. Returns the model to train on (a new object after
+        densification, `g` otherwise). `views` give the sampling rates of Mip-Splatting's reset."""
         if it >= self.stop:
             return g
-        weight = None
-        if self.per_steradian and getattr(camera, "kind", None) == "equirect":
-            weight = latitude_weight(g.means, viewmat)
         self.stats.add(out.means2d.grad if out.means2d.requires_grad else None, out.visible, out.radii,
-                       camera.pixel_scale[0], gradient_scale(camera), weight)
+                       camera.pixel_scale[0], gradient_scale(camera))
         if it >= self.start and it % self.every == 0:
             by_size = self._prunes_by_size(it)
             res = densify_and_prune(

@@ -279,8 +279,7 @@ class Trainer:
         with torch.no_grad():
             self._optimiser_step()
             lap("optimiser")
-            g = self.strategy.step_post_backward(self.g, self.opt, out, view.camera, view.viewmat, it, self.views,
-                                                 self.gen)
+            g = self.strategy.step_post_backward(self.g, self.opt, out, view.camera, it, self.views, self.gen)
             if g is not self.g:
                 self.g = g
                 self.objective.model_changed()

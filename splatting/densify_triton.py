@@ -1,6 +1,6 @@
 """One rendered view's densification statistics in one Triton launch (the GPU side of
 `gaussians.densify.DensifyStats.add`, ~14 element-wise operations in torch): per Gaussian, the norm of
-its screen-space gradient (non-finite → 0), times its weight if one is given, summed where it was visible, the visible count and
+its screen-space gradient (non-finite → 0) summed where it was visible, the visible count and
 the largest screen radius, updated in place."""
 
 from __future__ import annotations
@@ -23,15 +23,13 @@ def available() -> bool:
 if triton is not None:
 
     @triton.jit
-    def _add(grad2d, visible, radii, weight, grad_accum, count, max_radius, n, s_grad, s_vis, s_rad, scale,
-             pixel_scale, HAS_WEIGHT: tl.constexpr, BLOCK: tl.constexpr):
+    def _add(grad2d, visible, radii, grad_accum, count, max_radius, n, s_grad, s_vis, s_rad, scale, pixel_scale,
+             BLOCK: tl.constexpr):
         i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
         ok = i < n
         gx = tl.load(grad2d + i * s_grad, mask=ok, other=0.0).to(grad_accum.dtype.element_ty)
         gy = tl.load(grad2d + i * s_grad + 1, mask=ok, other=0.0).to(grad_accum.dtype.element_ty)
         g = tl.sqrt(gx * gx + gy * gy) * scale
-        if HAS_WEIGHT:
-            g = g * tl.load(weight + i, mask=ok, other=0.0).to(g.dtype)
         g = tl.where((g == g) & (g < float("inf")), g, 0.0)  # nan_to_num(nan=0, posinf=0)
         r = tl.load(radii + i * s_rad, mask=ok, other=0)
         vis = (tl.load(visible + i * s_vis, mask=ok, other=0) != 0) & (r > 0)
@@ -45,30 +43,23 @@ if triton is not None:
 
 
 def add_(grad2d: torch.Tensor, visible: torch.Tensor, radii: torch.Tensor, grad_accum: torch.Tensor,
-         count: torch.Tensor, max_radius: torch.Tensor, scale: float, pixel_scale: float,
-         weight: torch.Tensor | None = None) -> None:
+         count: torch.Tensor, max_radius: torch.Tensor, scale: float, pixel_scale: float) -> None:
     """In place: `DensifyStats.add`'s update of (grad_accum, count, max_radius), all [N] contiguous;
-    `grad2d` [N,2] with a unit column stride, `visible` [N] bool, `radii` [N] integer pixels,
-    `weight` None or [N] (each Gaussian's factor on its gradient)."""
+    `grad2d` [N,2] with a unit column stride, `visible` [N] bool, `radii` [N] integer pixels."""
     n = grad_accum.shape[0]
     if n == 0:
         return
     if grad2d.stride(1) != 1:
         grad2d = grad2d.contiguous()
     vis = visible.view(torch.uint8) if visible.dtype == torch.bool else visible
-    if weight is not None:
-        weight = weight.contiguous()
-    kernel, grid, args, options = add_launch(grad2d, vis, radii, weight, grad_accum, count, max_radius, n,
-                                             grad2d.stride(0), vis.stride(0), radii.stride(0), scale, pixel_scale)
+    kernel, grid, args, options = add_launch(grad2d, vis, radii, grad_accum, count, max_radius, n, grad2d.stride(0),
+                                             vis.stride(0), radii.stride(0), scale, pixel_scale)
     kernel[grid](*args, **options)
 
 
-def add_launch(grad2d, visible, radii, weight, grad_accum, count, max_radius, n, s_grad, s_vis, s_rad, scale,
-               pixel_scale):
-    """(kernel, grid, args, options): spelled out once, for `add_` and the compile check (`weight`
-    None: the unweighted kernel; grad_accum stands in for the pointer it never reads)."""
-    has_weight = weight is not None
+def add_launch(grad2d, visible, radii, grad_accum, count, max_radius, n, s_grad, s_vis, s_rad, scale, pixel_scale):
+    """(kernel, grid, args, options): spelled out once, for `add_` and the compile check."""
     # -(-a // b) = ⌈a/b⌉ in Python ints: triton.cdiv costs microseconds a call on the host, every step
     return (_add, (-(-n // _BLOCK),),
-            (grad2d, visible, radii, weight if has_weight else grad_accum, grad_accum, count, max_radius, n, s_grad,
-             s_vis, s_rad, float(scale), float(pixel_scale)), dict(HAS_WEIGHT=has_weight, BLOCK=_BLOCK, num_warps=4))
+            (grad2d, visible, radii, grad_accum, count, max_radius, n, s_grad, s_vis, s_rad, float(scale),
+             float(pixel_scale)), dict(BLOCK=_BLOCK, num_warps=4))

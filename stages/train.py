@@ -177,9 +177,6 @@ class Params(StageParams):
     densify_every: int = Field(default=_TRAINER["densify_every"], ge=1, description="Iterations between densification steps.")
     densify_grad_threshold: float = Field(
         default=_TRAINER["densify_grad_threshold"], gt=0, description="On the angular view-space gradient (resolution independent).")
-    densify_per_steradian: bool = Field(
-        default=_TRAINER["densify_per_steradian"],
-        description="360: × cos(latitude) on each Gaussian's densification statistic (every steradian counts alike).")
     percent_dense: float = Field(
         default=_TRAINER["percent_dense"], gt=0, description="Gaussians larger than this × extent are split, smaller ones cloned.")
     min_opacity: float = Field(
