@@ -29,7 +29,7 @@ import warnings
 
 import torch
 
-from .devices import device_key
+from .devices import cdiv, device_key
 from .project_triton import INTS
 
 try:
@@ -150,8 +150,7 @@ def _tile_ids(ntiles, device):
 
 def emit_launch(ints, order, offsets, keys, gids, CAP, ts, ntx, n):
     """(kernel, grid, args, options) of the pair writer, for the launch and the compile check."""
-    # -(-a // b) = ⌈a/b⌉ in Python ints: triton.cdiv costs microseconds a call on the host, every step
-    return (_emit_pairs, (-(-n // EMIT_BLOCK),), (ints, order, offsets, keys, gids, CAP, n, ts, ntx),
+    return (_emit_pairs, (cdiv(n, EMIT_BLOCK),), (ints, order, offsets, keys, gids, CAP, n, ts, ntx),
             dict(INTS=INTS, BLOCK=EMIT_BLOCK, num_warps=4))
 
 

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import torch
 
+from .devices import cdiv
+
 try:
     import triton
     import triton.language as tl
@@ -59,7 +61,6 @@ def add_(grad2d: torch.Tensor, visible: torch.Tensor, radii: torch.Tensor, grad_
 
 def add_launch(grad2d, visible, radii, grad_accum, count, max_radius, n, s_grad, s_vis, s_rad, scale, pixel_scale):
     """(kernel, grid, args, options): spelled out once, for `add_` and the compile check."""
-    # -(-a // b) = ⌈a/b⌉ in Python ints: triton.cdiv costs microseconds a call on the host, every step
-    return (_add, (-(-n // _BLOCK),),
+    return (_add, (cdiv(n, _BLOCK),),
             (grad2d, visible, radii, grad_accum, count, max_radius, n, s_grad, s_vis, s_rad, float(scale),
              float(pixel_scale)), dict(BLOCK=_BLOCK, num_warps=4))

@@ -26,6 +26,8 @@ import math
 
 import torch
 
+from .devices import cdiv
+
 try:
     import triton
     import triton.language as tl
@@ -283,8 +285,7 @@ def _strides(t: torch.Tensor) -> tuple[int, int, int]:
 def _launches(pred, gt, mask, weight, win, moments, dmaps, partials, totals, lambdas, h, w, sp, sg):
     """The forward's three launches as (kernel, grid, args, options): spelled out once, for the
     loss and for the compile check (splatting/kernel_report.py)."""
-    # -(-a // b) = ⌈a/b⌉ in Python ints: triton.cdiv costs microseconds a call on the host, every step
-    grid = (-(-h // _BLOCK_Y), -(-w // _BLOCK_X))
+    grid = (cdiv(h, _BLOCK_Y), cdiv(w, _BLOCK_X))
     has_mask, has_weight = mask is not None, weight is not None
     m = mask if has_mask else win  # any pointer: never read without the flag
     wt = weight if has_weight else win
@@ -301,7 +302,7 @@ def _launches(pred, gt, mask, weight, win, moments, dmaps, partials, totals, lam
 def _backward_launches(dmaps, blurred, pred, gt, mask, weight, win, totals, ups, grad, lambdas, h, w, sp, sg, so):
     """The backward's two launches, as :func:`_launches`; `ups` the upstream gradients of
     (loss, L1, SSIM), None where that output is unused."""
-    grid = (-(-h // _BLOCK_Y), -(-w // _BLOCK_X))
+    grid = (cdiv(h, _BLOCK_Y), cdiv(w, _BLOCK_X))
     has_mask, has_weight = mask is not None, weight is not None
     tile = dict(BY=_BLOCK_Y, BX=_BLOCK_X, num_warps=4)
     flags = dict(HAS_G_LOSS=ups[0] is not None, HAS_G_L1=ups[1] is not None, HAS_G_SSIM=ups[2] is not None)
@@ -325,7 +326,7 @@ class _FusedPhotometric(torch.autograd.Function):
         h, w = pred.shape[:2]
         dev, dt = pred.device, pred.dtype
         win = _window(dt, dev)
-        tiles = -(-h // _BLOCK_Y) * -(-w // _BLOCK_X)
+        tiles = cdiv(h, _BLOCK_Y) * cdiv(w, _BLOCK_X)
         moments = torch.empty((15, h, w), dtype=dt, device=dev)
         dmaps = torch.empty((9, h, w), dtype=dt, device=dev)
         partials = torch.empty((tiles, _NUM_PARTIALS), dtype=dt, device=dev)

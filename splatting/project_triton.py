@@ -26,6 +26,7 @@ import math
 import torch
 
 from .cameras import EquirectCamera
+from .devices import cdiv
 from .project import ALPHA_MIN, DEPTH_KEY_SHIFT, PACK, TAU_MAX, project
 
 try:
@@ -438,8 +439,7 @@ def projection_launch(means, quats, scales, opac, colors, viewmat, camvec, packe
                       equirect, sh_degree, K):
     """(kernel, grid, args, options) of the projection, for the launch and the compile check."""
     N = means.shape[0]
-    # -(-a // b) = ⌈a/b⌉ in Python ints: triton.cdiv costs microseconds a call on the host, every step
-    grid = (max(1, -(-N // BLOCK)),)
+    grid = (max(1, cdiv(N, BLOCK)),)
     return (_project_fwd, grid, (means, quats, scales, opac, colors, viewmat, camvec, packed, ints, visible, m2d,
                                  N, H, W, ts),
             dict(EQUIRECT=bool(equirect), SH_DEGREE=int(sh_degree), K=int(K), BLOCK=BLOCK, num_warps=2))

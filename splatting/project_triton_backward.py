@@ -25,6 +25,7 @@ import math
 
 import torch
 
+from .devices import cdiv
 from .project import PACK
 from .project_triton import BLOCK, _camera_vector, triton
 
@@ -464,8 +465,7 @@ def backward_launch(means, quats, scales, colors, viewmat, camvec, visible, gP, 
     """(kernel, grid, args, options) of the projection's backward, for the launch and the compile check;
     the last of `outs` (the view matrix's per-program sums) None: no gradient for the view matrix."""
     N = means.shape[0]
-    # -(-a // b) = ⌈a/b⌉ in Python ints: triton.cdiv costs microseconds a call on the host, every step
-    grid = (max(1, -(-N // BLOCK)),)
+    grid = (max(1, cdiv(N, BLOCK)),)
     *grads, g_view = outs
     view_grad = g_view is not None
     g_view = grads[0] if g_view is None else g_view  # any pointer: never written without the flag
@@ -485,13 +485,13 @@ def project_backward(means, quats, scales, colors, viewmat, visible, g_packed, c
     N = means.shape[0]
     K = colors.shape[1] if colors.dim() == 3 else 1
     deg = -1 if colors.dim() == 2 else int(sh_degree)
-    nprog = max(1, -(-N // BLOCK))
+    nprog = max(1, cdiv(N, BLOCK))
     # the gradients are views of one buffer: one allocation, not six (autograd keeps them as they
     # are: each view is contiguous with its parameter's layout). Each starts 16-byte aligned, as
     # a buffer of its own would: Triton specialises a launch on its pointers' alignment
     shapes = (means.shape, quats.shape, scales.shape, (N,), colors.shape, (N, 2))
     sizes = [math.prod(shape) for shape in shapes]
-    padded = [-(-n // 4) * 4 for n in sizes]
+    padded = [cdiv(n, 4) * 4 for n in sizes]
     buffer = torch.empty(sum(padded), dtype=dtype, device=device)
     g_means, g_quats, g_scales, g_opac, g_colors, g_m2d = (
         flat[:n].view(shape) for flat, n, shape in zip(buffer.split(padded), sizes, shapes))

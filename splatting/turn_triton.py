@@ -16,6 +16,8 @@ import math
 
 import torch
 
+from .devices import cdiv
+
 try:
     import triton
     import triton.language as tl
@@ -107,8 +109,7 @@ if triton is not None:
 
 def turn_launch(image, dirs, rot, out, h, w, channels, bicubic, clamp01):
     """(kernel, grid, args, options): spelled out once, for the trainer and the compile check."""
-    # -(-a // b) = ⌈a/b⌉ in Python ints: triton.cdiv costs microseconds a call on the host, every step
-    grid = (-(-(h * w) // _BLOCK),)
+    grid = (cdiv(h * w, _BLOCK),)
     return _turn, grid, (image, dirs, rot, out, h, w), dict(C=channels, BICUBIC=bicubic, CLAMP01=clamp01,
                                                              BLOCK=_BLOCK, num_warps=4)
 
