@@ -41,10 +41,6 @@ class LossConfig:
     #: (the sparse-capture study in docs/training.md)
     lambda_coverage: float = 0.0
     coverage_height: int = 64
-    #: weight of mean(1 − alpha) of the training render itself (over the view's mask): the surfaces a
-    #: training view sees become opaque, as random_background makes them, without its random
-    #: colours (issue 39: held-out holes on a one-panorama capture)
-    lambda_alpha: float = 0.0
     #: horizontal jitter of those positions (× extent) around the segment between two cameras
     coverage_jitter: float = 0.05
     #: weight pulling the appearance transforms to the identity

@@ -4,7 +4,6 @@
          + λ_scale · mean scale / extent        (the official 360-GS code's floater penalty)
          + λ_app · appearance regulariser (+ its gauge)
          + λ_cov · mean(1 − alpha) from a point between two training cameras
-         + λ_alpha · mean(1 − alpha) of the training render (over its mask)
          + λ3 · L_layout                         (layout Gaussians moving off their planes)
 
 It keeps what the terms reuse between iterations (solid-angle weights, crop resamplers and
@@ -57,10 +56,9 @@ class TrainingObjective:
         self._layout_rows = None
 
     def __call__(self, g: Gaussians, drawn: Gaussians, pred: torch.Tensor, view, appearance, background,
-                 generator: torch.Generator, alpha: torch.Tensor | None = None) -> LossTerms:
+                 generator: torch.Generator) -> LossTerms:
         """The loss of `pred` (the render of `drawn`, through the view's appearance) against `view`;
-        `g` is the model itself (its scales and layout rows), `alpha` the render's ([H,W]; needed
-        when lambda_alpha is on)."""
+        `g` is the model itself (its scales and layout rows)."""
         cfg = self.cfg
         crops = self._crop_targets(view)
         if crops is not None:
@@ -80,12 +78,6 @@ class TrainingObjective:
         if cfg.loss.lambda_coverage > 0:
             terms.coverage = self._coverage_loss(drawn, background, generator)
             terms.loss = terms.loss + cfg.loss.lambda_coverage * terms.coverage
-        if cfg.loss.lambda_alpha > 0:
-            clear = 1.0 - alpha
-            if view.mask is not None:  # a weighted mean: indexing by the mask would wait for the device
-                m = view.mask.to(clear.dtype)
-                clear = (clear * m).sum() / m.sum().clamp_min(1.0)
-            terms.loss = terms.loss + cfg.loss.lambda_alpha * clear.mean()
         if cfg.loss.layout_reg and cfg.loss.lambda_layout > 0:
             if self._layout_rows is None:
                 # the layout Gaussians' rows, anchors and normals change only with densification:

@@ -269,7 +269,7 @@ class Trainer:
         out = render(drawn, view.viewmat, view.camera, backend=cfg.render.backend, background=bg, sh_degree=self.active_sh)
         lap("render")
         pred = self._as_trained(view, out.image)
-        terms = self.objective(self.g, drawn, pred, view, self.appearance, self._bg, self.gen, out.alpha)
+        terms = self.objective(self.g, drawn, pred, view, self.appearance, self._bg, self.gen)
         if out.means2d.requires_grad:
             out.means2d.retain_grad()
         lap("losses")

@@ -113,9 +113,6 @@ class Params(StageParams):
         default=_TRAINER["lambda_coverage"], ge=0, description="Weight of the novel-view coverage loss: mean(1 - alpha) of a small panorama "
         "rendered from a random point between the training cameras (indoors every ray ends on a surface); "
         "sparse captures: 1 with lr_scale=0.125 (docs/training.md).")
-    lambda_alpha: float = Field(
-        default=_TRAINER["lambda_alpha"], ge=0, description="Weight of mean(1 - alpha) of the training render itself: "
-        "the surfaces a training view sees become opaque, as with random_background but without its random colours.")
     coverage_height: int | None = Field(
         default=None, ge=4, json_schema_extra={"pixels": "panorama_height"},
         description="Rows of the coverage loss's panorama (None = half the training height: "
