@@ -59,6 +59,22 @@ class TrainView:
                          None if self.mask is None else self.mask.to(device))
 
 
+def mean_colour(images, masks) -> tuple[float, float, float]:
+    """The mean RGB of the images' valid pixels, every pixel counted once (`images`: [H,W,3] arrays
+    in [0,1]; `masks`: [H,W] bool arrays or None, one per image): the least-squares constant for
+    what no training view covers, the background `train.background: mean` trains and renders with."""
+    total, count = np.zeros(3), 0
+    for image, mask in zip(images, masks, strict=True):
+        px = np.asarray(image, dtype=np.float64).reshape(-1, 3)
+        if mask is not None:
+            px = px[np.asarray(mask, dtype=bool).reshape(-1)]
+        total += px.sum(axis=0)
+        count += px.shape[0]
+    if count == 0:
+        raise ValueError("mean_colour: no valid pixel in any training image")
+    return tuple(float(c) for c in total / count)
+
+
 def scene_extent(points: np.ndarray | torch.Tensor, low: float = 1.0, high: float = 99.0) -> float:
     """Half the diagonal of the (1st–99th percentile) bounding box of `points`, at least 0.1 m:
     the scene size 3DGS scales position learning rates and size thresholds by."""

@@ -190,9 +190,12 @@ def render_seconds(render_once, device: str) -> float:
 
 
 def train_background(train: Loaded) -> tuple[float, float, float] | None:
-    """The background the model was trained against (train artifact's meta.params), if recorded."""
-    bg = train.meta.params.get("background") if train.meta is not None else None
-    return tuple(float(x) for x in bg) if isinstance(bg, list) and len(bg) == 3 else None
+    """The background the model was trained against, if recorded: the colour the train stage
+    settled (its settings: `mean` resolved), else its parameter (artifacts written before)."""
+    bg = (train.data.settings or {}).get("background")
+    if bg is None and train.meta is not None:
+        bg = train.meta.params.get("background")
+    return tuple(float(x) for x in bg) if isinstance(bg, list | tuple) and len(bg) == 3 else None
 
 
 # ----------------------------------------------------------------------------- stage

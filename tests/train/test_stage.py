@@ -78,6 +78,39 @@ def test_random_init_run_writes_ply_log_and_artifact(tiny_room, tmp_path):
     assert not (tmp_path / "scratch" / T.CHECKPOINT_NAME).exists()  # removed once finished
 
 
+def test_mean_colour_counts_each_valid_pixel_once():
+    from gaussians.trainer import mean_colour
+
+    a = np.zeros((2, 4, 3))
+    a[0] = (0.2, 0.4, 0.6)  # the valid top row; the bottom row is masked out
+    b = np.full((1, 2, 3), 0.8)
+    mask_a = np.zeros((2, 4), bool)
+    mask_a[0] = True
+    assert mean_colour([a, b], [mask_a, None]) == pytest.approx(((4 * 0.2 + 1.6) / 6, (1.6 + 1.6) / 6, (2.4 + 1.6) / 6))
+    with pytest.raises(ValueError, match="no valid pixel"):
+        mean_colour([a], [np.zeros((2, 4), bool)])
+
+
+def test_mean_background_is_settled_recorded_and_rendered_by_evaluate(tiny_room, tmp_path):
+    """background 'mean': the trainer gets the training images' mean colour (over their masks),
+    the artifact records that colour, and evaluate renders with it."""
+    from schemas.scene_loader import valid_mask
+    from stages.evaluate import train_background
+
+    ctx = ctx_for(tiny_room, tmp_path, {"iterations": 2, "background": "mean"})
+    views = ctx.scene.manifest.train_views()
+    images = T.load_images(ctx.scene, views, 16)
+    expected = T.mean_colour([images[v.name] for v in views], [valid_mask(ctx.scene, v, 16, 32) for v in views])
+    assert min(expected) > 0.01  # not the default black
+    out = T.run(ctx)
+    assert out.settings["background"] == pytest.approx(list(expected))
+    # evaluate reads the settled colour, not the parameter ("mean")
+    assert train_background(Loaded(out, ctx.out_dir)) == pytest.approx(expected)
+    assert T.make_config(T.Params(background=(0.1, 0.2, 0.3)), 4, 1.0).render.background == (0.1, 0.2, 0.3)
+    with pytest.raises(ValueError, match="mean colour"):
+        T.make_config(T.Params(background="mean"), 4, 1.0)
+
+
 def test_requested_init_must_be_available(tiny_room, tmp_path):
     with pytest.raises(PanoError, match="layout"):
         T.run(ctx_for(tiny_room, tmp_path, {"init": "layout"}))
