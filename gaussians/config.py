@@ -104,7 +104,9 @@ class RenderConfig:
     mip_filter_variance: float = DEFAULT_VARIANCE
     #: scale the filtered opacity by sqrt(det Σ / det Σ') (Mip-Splatting); False widens only (ablation)
     mip_filter_keep_integral: bool = True
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: RGB in [0, 1] behind the Gaussians, or "mean": the training images' mean colour over their
+    #: masks (Trainer.background), so what no training view covers shows the colour that costs least
+    background: tuple[float, float, float] | str = (0.0, 0.0, 0.0)
     #: train against a random background colour each iteration (drawn from the trainer's generator):
     #: a pixel left partly transparent then cannot match its ground truth, so surfaces become opaque
     #: (every ray of an indoor panorama ends on one); renders for evaluation use `background`

@@ -59,15 +59,15 @@ class TrainView:
                          None if self.mask is None else self.mask.to(device))
 
 
-def mean_colour(images, masks) -> tuple[float, float, float]:
-    """The mean RGB of the images' valid pixels, every pixel counted once (`images`: [H,W,3] arrays
-    in [0,1]; `masks`: [H,W] bool arrays or None, one per image): the least-squares constant for
-    what no training view covers, the background `train.background: mean` trains and renders with."""
+def mean_colour(views: list[TrainView]) -> tuple[float, float, float]:
+    """The mean RGB of the views' valid pixels, every pixel counted once: the least-squares
+    constant for what no training view covers, the background `background: "mean"` trains and
+    renders with."""
     total, count = np.zeros(3), 0
-    for image, mask in zip(images, masks, strict=True):
-        px = np.asarray(image, dtype=np.float64).reshape(-1, 3)
-        if mask is not None:
-            px = px[np.asarray(mask, dtype=bool).reshape(-1)]
+    for v in views:
+        px = v.image.detach().to("cpu", torch.float64).reshape(-1, 3).numpy()
+        if v.mask is not None:
+            px = px[v.mask.detach().cpu().reshape(-1).numpy()]
         total += px.sum(axis=0)
         count += px.shape[0]
     if count == 0:
@@ -207,7 +207,8 @@ class Trainer:
         self.train_seconds = 0.0
         self.nonfinite_steps = 0
         self.log_path = log_path
-        self._bg = torch.tensor(cfg.render.background, dtype=self.g.means.dtype, device=self.device)
+        bg = mean_colour(views) if cfg.render.background == "mean" else cfg.render.background
+        self._bg = torch.tensor(bg, dtype=self.g.means.dtype, device=self.device)
         self.last_loss: float | None = None
         #: Per-panorama colour transforms (None: off); applied to training renders only.
         self.appearance = self.new_appearance()
@@ -262,6 +263,11 @@ class Trainer:
         if not self.stack:
             self.stack = torch.randperm(len(self.views), generator=self.gen).tolist()
         return self.views[self.stack.pop()]
+
+    @property
+    def background(self) -> tuple[float, float, float]:
+        """The background colour this trainer renders with ("mean" resolved)."""
+        return tuple(float(c) for c in self._bg.detach().cpu())
 
     @property
     def stats(self) -> DensifyStats:

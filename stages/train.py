@@ -27,7 +27,7 @@ from gaussians.config import TrainConfig
 from gaussians.init import from_cloud, random_points
 from gaussians.model import DEFAULT_EPS2D, Gaussians
 from gaussians.ply import nonfinite_problem, save_ply
-from gaussians.trainer import CHECKPOINT_NAME, Trainer, TrainView, mean_colour, scene_extent
+from gaussians.trainer import CHECKPOINT_NAME, Trainer, TrainView, scene_extent
 from panogeom.equirect import angles_to_pixel, dirs_to_angles
 from panogeom.images import read_rgb
 from runfs.errors import PanoError, one_line
@@ -197,9 +197,9 @@ class Params(StageParams):
     init_opacity: float = Field(default=0.1, gt=0, lt=1, description="Opacity of every initial Gaussian.")
     layout_flatten: float = Field(default=0.1, gt=0, le=1, description="Thickness / width of layout Gaussians.")
     background: tuple[float, float, float] | Literal["mean"] = Field(
-        default=_TRAINER["background"], description="RGB in [0, 1] behind the Gaussians while training and in "
-        "the evaluation's renders, or 'mean': the training images' mean colour (what no training view covers "
-        "then shows the colour that costs least).")
+        default="mean", description="RGB in [0, 1] behind the Gaussians while training and in the evaluation's "
+        "renders, or 'mean': the training images' mean colour, so what no training view covers shows the colour "
+        "that costs least (docs/training.md, issue 39: +3.5 dB on a real panorama 3.6 m from its training view).")
     random_background: bool | None = Field(
         default=None, description="Train against a random background colour each iteration (opaque surfaces); "
                                   "evaluation renders use `background`. None = the projection's default "
@@ -363,16 +363,10 @@ def build_views(images: dict[str, np.ndarray], viewmats: dict[str, np.ndarray], 
     return out
 
 
-def make_config(p: Params, num_train_views: int, extent: float, device: str = "cpu",
-                images_mean: tuple[float, float, float] | None = None) -> TrainConfig:
+def make_config(p: Params, num_train_views: int, extent: float, device: str = "cpu") -> TrainConfig:
     """The trainer's configuration: every setting it shares with Params as resolved (preset, then
-    projection defaults), the learning rates times `lr_scale`, and what the stage derives;
-    `images_mean` is the training images' mean colour, which `background: mean` needs."""
+    projection defaults), the learning rates times `lr_scale`, and what the stage derives."""
     background = p.resolved("background")
-    if background == "mean":
-        if images_mean is None:
-            raise ValueError("background 'mean' needs the training images' mean colour")
-        background = images_mean
     shared = set(TrainConfig.setting_names()) & set(Params.model_fields)
     values = {k: p.resolved(k) for k in shared}
     lr = float(p.resolved("lr_scale"))
@@ -380,7 +374,8 @@ def make_config(p: Params, num_train_views: int, extent: float, device: str = "c
     values.update(
         iterations=int(values["iterations"]), densify_from=int(values["densify_from"]),
         densify_until=int(values["densify_until"]), opacity_reset_every=int(values["opacity_reset_every"]),
-        eps2d=float(values["eps2d"]), background=tuple(float(x) for x in background),
+        eps2d=float(values["eps2d"]),
+        background=background if background == "mean" else tuple(float(x) for x in background),
         lambda_layout=p.lambda_layout if p.lambda_layout is not None else default_lambda_layout(num_train_views),
         coverage_height=p.coverage_height or max(4, int(p.resolved("height")) // 2),
         extent=float(extent), device=device,
@@ -516,9 +511,7 @@ def run(ctx: StageContext) -> TrainOutput:
     g, init = initial_gaussians(ctx, p, views)
     extent = p.extent if p.extent is not None else scene_extent(g.means)
     device = resolve_device(p.device, "train.device")
-    images_mean = (mean_colour([images[v.name] for v in views], [masks[v.name] for v in views])
-                   if p.resolved("background") == "mean" else None)
-    cfg = make_config(p, len(views), extent, device, images_mean=images_mean)
+    cfg = make_config(p, len(views), extent, device)
 
     kernel_build_s = build_kernel_first(p.backend, device)
     log_path = ctx.out_dir / "train_log.jsonl"
@@ -619,10 +612,10 @@ def run(ctx: StageContext) -> TrainOutput:
         step_seconds=None if trainer.part_seconds is None else {
             k: round(v, 3) for k, v in trainer.part_seconds.items()},
         appearance="appearance.json" if trainer.appearance is not None else None,
-        # lambda_layout, coverage_height and background are settled by make_config (view count, height,
-        # the images' mean colour)
+        # lambda_layout and coverage_height are settled by make_config (view count, height), the
+        # background by the trainer ("mean": its images' mean colour)
         settings={**p.values_used(), "lambda_layout": cfg.loss.lambda_layout, "coverage_height": cfg.loss.coverage_height,
-                  "background": list(cfg.render.background)},
+                  "background": list(trainer.background)},
     )
 
 

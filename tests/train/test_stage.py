@@ -14,7 +14,7 @@ import splatting
 import stages.train as T
 from gaussians import load_ply
 from runfs.errors import PanoError
-from schemas.scene_loader import load_scene
+from schemas.scene_loader import load_scene, valid_mask
 from runtime.stage import Loaded, StageContext
 from schemas.sampling import SamplingOutput
 from schemas.train import TrainOutput
@@ -79,36 +79,38 @@ def test_random_init_run_writes_ply_log_and_artifact(tiny_room, tmp_path):
 
 
 def test_mean_colour_counts_each_valid_pixel_once():
-    from gaussians.trainer import mean_colour
+    from gaussians.trainer import TrainView, mean_colour
 
-    a = np.zeros((2, 4, 3))
-    a[0] = (0.2, 0.4, 0.6)  # the valid top row; the bottom row is masked out
-    b = np.full((1, 2, 3), 0.8)
-    mask_a = np.zeros((2, 4), bool)
+    a = torch.zeros(2, 4, 3)
+    a[0] = torch.tensor([0.2, 0.4, 0.6])  # the valid top row; the bottom row is masked out
+    mask_a = torch.zeros(2, 4, dtype=torch.bool)
     mask_a[0] = True
-    assert mean_colour([a, b], [mask_a, None]) == pytest.approx(((4 * 0.2 + 1.6) / 6, (1.6 + 1.6) / 6, (2.4 + 1.6) / 6))
+    cam = splatting.EquirectCamera(2, 4)
+    views = [TrainView("a", a, torch.eye(4), cam, mask_a), TrainView("b", torch.full((1, 2, 3), 0.8), torch.eye(4), cam)]
+    assert mean_colour(views) == pytest.approx(((4 * 0.2 + 1.6) / 6, (1.6 + 1.6) / 6, (2.4 + 1.6) / 6))
     with pytest.raises(ValueError, match="no valid pixel"):
-        mean_colour([a], [np.zeros((2, 4), bool)])
+        mean_colour([TrainView("a", a, torch.eye(4), cam, torch.zeros(2, 4, dtype=torch.bool))])
 
 
-def test_mean_background_is_settled_recorded_and_rendered_by_evaluate(tiny_room, tmp_path):
-    """background 'mean': the trainer gets the training images' mean colour (over their masks),
-    the artifact records that colour, and evaluate renders with it."""
-    from schemas.scene_loader import valid_mask
+def test_mean_background_is_the_default_recorded_and_rendered_by_evaluate(tiny_room, tmp_path):
+    """background 'mean' (the default): the trainer renders against the training images' mean
+    colour over their masks, the artifact records that colour, and evaluate renders with it."""
+    from gaussians.trainer import mean_colour
     from stages.evaluate import train_background
 
-    ctx = ctx_for(tiny_room, tmp_path, {"iterations": 2, "background": "mean"})
+    ctx = ctx_for(tiny_room, tmp_path, {"iterations": 2})
+    assert ctx.params.background == "mean"
     views = ctx.scene.manifest.train_views()
     images = T.load_images(ctx.scene, views, 16)
-    expected = T.mean_colour([images[v.name] for v in views], [valid_mask(ctx.scene, v, 16, 32) for v in views])
-    assert min(expected) > 0.01  # not the default black
+    masks = {v.name: valid_mask(ctx.scene, v, 16, 32) for v in views}
+    expected = mean_colour(T.build_views(images, {v.name: v.viewmat for v in views}, "360", masks, None))
+    assert min(expected) > 0.01  # not black
     out = T.run(ctx)
     assert out.settings["background"] == pytest.approx(list(expected))
     # evaluate reads the settled colour, not the parameter ("mean")
     assert train_background(Loaded(out, ctx.out_dir)) == pytest.approx(expected)
     assert T.make_config(T.Params(background=(0.1, 0.2, 0.3)), 4, 1.0).render.background == (0.1, 0.2, 0.3)
-    with pytest.raises(ValueError, match="mean colour"):
-        T.make_config(T.Params(background="mean"), 4, 1.0)
+    assert T.make_config(T.Params(), 4, 1.0).render.background == "mean"
 
 
 def test_requested_init_must_be_available(tiny_room, tmp_path):
@@ -233,8 +235,8 @@ def test_mip_filter_is_baked_into_the_exported_model(tiny_room, tmp_path):
         sigma = filter_variance(sampling_rate(g.means, [v.viewmat for v in tv], [v.camera for v in tv])).sqrt()
         floor_ok[mip] = bool((g.scales.min(dim=1).values >= sigma * (1 - 1e-4)).all())
         with torch.no_grad():
-            p = float(np.mean([psnr(render(g, v.viewmat, v.camera, background=torch.zeros(3)).image, v.image)
-                               for v in tv]))
+            bg = torch.tensor(out.settings["background"])  # the colour it trained against
+            p = float(np.mean([psnr(render(g, v.viewmat, v.camera, background=bg).image, v.image) for v in tv]))
         assert p == pytest.approx(out.final_train_psnr, abs=1e-3)
     assert floor_ok == {False: False, True: True}
     assert T.make_config(T.Params(), 4, 1.0).render.mip_filter is False  # off by default
@@ -271,8 +273,9 @@ def test_training_dilation_travels_with_the_exported_model(tiny_room, tmp_path):
 
     def score(**kw):
         with torch.no_grad():
-            return float(np.mean([psnr(render(g, v.viewmat, v.camera, background=torch.zeros(3), **kw).image,
-                                       v.image) for v in tv]))
+            bg = torch.tensor(out.settings["background"])
+            return float(np.mean([psnr(render(g, v.viewmat, v.camera, background=bg, **kw).image, v.image)
+                                  for v in tv]))
 
     assert score() == pytest.approx(out.final_train_psnr, abs=1e-3)
     assert abs(score(eps2d=0.3) - out.final_train_psnr) > 0.01
