@@ -19,7 +19,7 @@ from typing import Literal
 import cv2
 import numpy as np
 import torch
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 from rich.markup import escape
 
 import splatting
@@ -221,6 +221,13 @@ class Params(StageParams):
         default=_TRAINER["lambda_appearance_gauge"], ge=0, description="Weight pinning the mean transform over the panoramas to the identity "
         "(the model's colours then match the panoramas' mean exposure, which held-out views are rendered at).")
     lr_appearance: float = Field(default=_TRAINER["lr_appearance"], gt=0, description="Adam learning rate of the transforms.")
+
+    @field_validator("background", mode="before")
+    @classmethod
+    def _mean_or_rgb(cls, v):
+        if isinstance(v, str) and v != "mean":
+            raise ValueError(f"{v!r} is neither 'mean' nor an RGB triple [r, g, b] in [0, 1]")
+        return v
 
     def resolved(self, key: str):
         """The value of `key`: as set, else the preset's, else the projection's default (PROJECTION_DEFAULTS)."""

@@ -62,6 +62,9 @@ def test_params_presets_and_validation():
         T.Params(projection="fisheye")
     with pytest.raises(Exception):
         T.Params(unknown=1)
+    with pytest.raises(ValueError, match="'grey' is neither 'mean' nor an RGB triple"):
+        T.Params(background="grey")
+    assert T.Params(background=[0, 0.5, 1]).background == (0.0, 0.5, 1.0)
 
 
 def test_random_init_run_writes_ply_log_and_artifact(tiny_room, tmp_path):
