@@ -112,11 +112,12 @@ def test_training_on_crops_and_evaluating_a_stitched_panorama(tiny_room, tmp_pat
     view = scene.manifest.test_views()[0]
     g = load_model(ctx.out_dir / out.ply)
     vm = torch.linalg.inv(torch.as_tensor(view.pose_matrix, dtype=torch.float32))
+    bg = torch.tensor(out.settings["background"])  # evaluate renders against the trained background
     with torch.no_grad():
-        stitched = render_stitched(g, vm, 32, 64, out.crops.rig(32)).image.clamp(0, 1).numpy()
+        stitched = render_stitched(g, vm, 32, 64, out.crops.rig(32), background=bg).image.clamp(0, 1).numpy()
         direct = splatting.render(g.means, g.quats, g.log_scales.exp(), g.opacity_logits.sigmoid(),
                                   torch.cat([g.sh_dc, g.sh_rest], 1), vm, splatting.EquirectCamera(32, 64),
-                                  sh_degree=g.sh_degree).image.clamp(0, 1).numpy()
+                                  sh_degree=g.sh_degree, background=bg).image.clamp(0, 1).numpy()
     written = read_rgb(tmp_path / "ev" / ev.views[0].render)
     assert np.abs(written - stitched).max() < 1.5 / 255
     assert np.abs(written - direct).max() > 4 / 255  # and it is not the direct render
