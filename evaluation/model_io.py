@@ -58,6 +58,16 @@ class Rendered:
     backend: str
 
 
+def recorded_background(settings: dict | None, params: dict | None) -> tuple[float, float, float] | None:
+    """The background a model was trained against, from its train artifact: the colour the train
+    stage settled (`settings`, where "mean" is resolved), else its parameter (artifacts written
+    before); None when neither holds an RGB triple."""
+    bg = (settings or {}).get("background")
+    if bg is None:
+        bg = (params or {}).get("background")
+    return tuple(float(x) for x in bg) if isinstance(bg, list | tuple) and len(bg) == 3 else None
+
+
 def render_on_device(g, pose_c2w: np.ndarray, camera, backend: str | None = None, background=None, rig=None):
     """The render of `g` from a camera-to-world pose as the renderer returns it, on the model's
     device (what an interactive viewer shows; `render_pose` downloads and normalises it)."""

@@ -23,7 +23,7 @@ import torch
 from pydantic import Field, field_validator
 
 from evaluation import metrics as M
-from evaluation.model_io import equirect_camera, load_model, render_on_device, render_pose
+from evaluation.model_io import equirect_camera, load_model, recorded_background, render_on_device, render_pose
 from evaluation.visuals import depth_rgb, error_rgb
 from panogeom.images import read_rgb, write_rgb
 from runfs.errors import PanoError
@@ -190,12 +190,8 @@ def render_seconds(render_once, device: str) -> float:
 
 
 def train_background(train: Loaded) -> tuple[float, float, float] | None:
-    """The background the model was trained against, if recorded: the colour the train stage
-    settled (its settings: `mean` resolved), else its parameter (artifacts written before)."""
-    bg = (train.data.settings or {}).get("background")
-    if bg is None and train.meta is not None:
-        bg = train.meta.params.get("background")
-    return tuple(float(x) for x in bg) if isinstance(bg, list | tuple) and len(bg) == 3 else None
+    """The background the model was trained against, if recorded (`recorded_background`)."""
+    return recorded_background(train.data.settings, None if train.meta is None else train.meta.params)
 
 
 # ----------------------------------------------------------------------------- stage

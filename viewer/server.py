@@ -165,6 +165,8 @@ class ViewerHandle:
     model: object  # gaussians.Gaussians (on `device`)
     device: str
     cameras: list[CameraView]
+    #: the colour the model was trained against (None: black), as the evaluate stage renders it
+    background: tuple[float, float, float] | None = None
     layers: dict[str, object] = field(default_factory=dict)  # toggle name -> GUI checkbox
     nodes: dict[str, list] = field(default_factory=dict)  # toggle name -> scene handles
     pano_height: object = None  # GUI slider
@@ -214,7 +216,7 @@ class ViewerHandle:
             raise ValueError("the camera pose is not a finite 4x4 matrix")
         pose = level_pose(c2w) if level else c2w
         with self._lock:
-            out = render_pose(self.model, pose, equirect_camera(height, 2 * height))
+            out = render_pose(self.model, pose, equirect_camera(height, 2 * height), background=self.background)
             folder = run_path(self.run_dir, VIEW_FOLDER)  # a link planted meanwhile is refused
             folder.mkdir(parents=True, exist_ok=True)
             n = 1 + max([int(p.stem.split("_")[-1]) for p in folder.glob("panorama_[0-9][0-9][0-9][0-9].png")]
@@ -250,12 +252,15 @@ def start_viewer(target: Target, host: str = "127.0.0.1", port: int = 8080, pano
     import torch
     import viser
 
-    from evaluation.model_io import load_model
+    from evaluation.model_io import load_model, recorded_background
+    from pipeline.engine import read_artifact
 
     run_dir = Path(target.run_dir)
     if device is None:
         device = "cuda" if torch.cuda.is_available() else "cpu"
     model = load_model(run_dir / MODEL_PATH, device=device)
+    train = read_artifact(run_dir, "train")
+    background = None if train is None else recorded_background(train.data.settings, train.meta.params)
     splats = splats_from_model(model)
     cameras = scene_cameras(target.scene)
 
@@ -264,7 +269,7 @@ def start_viewer(target: Target, host: str = "127.0.0.1", port: int = 8080, pano
     server.gui.configure_theme(control_width="medium")
     server.scene.set_up_direction("-y")  # the world is y down: no data are rotated
     h = ViewerHandle(server=server, run_dir=run_dir, url=f"http://{_url_host(host)}:{server.get_port()}",
-                     model=model, device=device, cameras=cameras)
+                     model=model, device=device, cameras=cameras, background=background)
 
     # initial viewpoint: the first training camera (inside the room), looking level along the room's
     # longest free direction (its own forward axis may face a wall a hand's breadth away)

@@ -139,10 +139,14 @@ def test_panorama_button_renders_and_saves(viewer, finished):
     assert img.shape == (64, 128, 3) and img.std() > 5  # 2:1, not blank
     meta = json.loads(pano.path.with_suffix(".json").read_text())
     np.testing.assert_allclose(np.asarray(meta["pose_c2w"])[:3, 3], viewer.cameras[0].c2w[:3, 3])
-    # the same render as evaluation's renderer from that (level) camera pose
+    # the same render as evaluation's renderer from that (level) camera pose, against the colour
+    # the model was trained against (the train artifact's settled background)
     from evaluation.model_io import equirect_camera, render_pose
+    from pipeline.engine import read_output
 
-    ref = render_pose(viewer.model, viewer.cameras[0].c2w, equirect_camera(64, 128)).image
+    background = tuple(read_output(finished / "R", "train").settings["background"])
+    assert viewer.background == pytest.approx(background) and max(background) > 0.05
+    ref = render_pose(viewer.model, viewer.cameras[0].c2w, equirect_camera(64, 128), background=background).image
     assert np.abs(pano.image - ref).max() < 1e-5
     assert viewer.pano_image is not None  # shown in the GUI
     assert not viewer.render_button.disabled
