@@ -163,7 +163,7 @@ def render_command(
         render_flythrough,
         walk_poses,
     )
-    from evaluation.model_io import equirect_camera, load_model, pinhole_camera
+    from evaluation.model_io import equirect_camera, load_model, pinhole_camera, recorded_background
     from runtime.console import track
     from pipeline.engine import load_artifact
     from schemas.train import TrainOutput
@@ -209,6 +209,7 @@ def render_command(
         raise PanoError("--height" if height else path, f"a frame {problem} (raise --max-megapixels if you mean it)")
     g = load_model(train.path(train.data.ply))
     target = output_path(run_path(engine.out_dir, "render"), path, "persp" if persp else "pano", overwrite=overwrite)
-    res = render_flythrough(g, poses, camera, target, fps=fps, backend=backend, track=track)
+    res = render_flythrough(g, poses, camera, target, fps=fps, backend=backend, track=track,
+                            background=recorded_background(train.data.settings, train.meta.params))
     console.print(f"[bold]video:[/] {escape(str(res.path))} ({res.frames} frames, {res.size[0]}×{res.size[1]} (H×W), "
                   f"H.264, {fps:g} fps, {res.frames / max(res.seconds, 1e-9):.1f} frames/s rendered)")

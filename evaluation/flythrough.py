@@ -371,7 +371,7 @@ def _encode_h264(frames_rgb, path: Path, fps: float, crf: int) -> int:
 
 
 def render_flythrough(g, poses: np.ndarray, camera, out_path: Path, fps: float = 24.0, backend=None,
-                      track=None) -> FlythroughResult:
+                      track=None, background=None) -> FlythroughResult:
     from evaluation.model_io import render_pose
 
     t0 = time.perf_counter()
@@ -379,7 +379,7 @@ def render_flythrough(g, poses: np.ndarray, camera, out_path: Path, fps: float =
 
     def frames():
         for pose in seq:
-            yield render_pose(g, pose, camera, backend=backend).image
+            yield render_pose(g, pose, camera, backend=backend, background=background).image
 
     n = write_video(frames(), out_path, fps)
     return FlythroughResult(Path(out_path), n, (int(camera.height), int(camera.width)), time.perf_counter() - t0)
