@@ -373,7 +373,6 @@ def build_views(images: dict[str, np.ndarray], viewmats: dict[str, np.ndarray], 
 def make_config(p: Params, num_train_views: int, extent: float, device: str = "cpu") -> TrainConfig:
     """The trainer's configuration: every setting it shares with Params as resolved (preset, then
     projection defaults), the learning rates times `lr_scale`, and what the stage derives."""
-    background = p.resolved("background")
     shared = set(TrainConfig.setting_names()) & set(Params.model_fields)
     values = {k: p.resolved(k) for k in shared}
     lr = float(p.resolved("lr_scale"))
@@ -382,7 +381,8 @@ def make_config(p: Params, num_train_views: int, extent: float, device: str = "c
         iterations=int(values["iterations"]), densify_from=int(values["densify_from"]),
         densify_until=int(values["densify_until"]), opacity_reset_every=int(values["opacity_reset_every"]),
         eps2d=float(values["eps2d"]),
-        background=background if background == "mean" else tuple(float(x) for x in background),
+        background=(values["background"] if values["background"] == "mean"
+                    else tuple(float(x) for x in values["background"])),
         lambda_layout=p.lambda_layout if p.lambda_layout is not None else default_lambda_layout(num_train_views),
         coverage_height=p.coverage_height or max(4, int(p.resolved("height")) // 2),
         extent=float(extent), device=device,

@@ -82,8 +82,8 @@ def test_every_shared_setting_reaches_the_trainer():
 
     trainer_default = TrainConfig().flat()
     derived = {"iterations", "densify_from", "densify_until", "opacity_reset_every", "max_gaussians", "eps2d",
-               "random_turns", "mip_filter", "random_background", "lambda_layout", "coverage_height", "extent", "background",
-               "device"}  # resolved from the preset / projection, or derived by the stage
+               "random_turns", "mip_filter", "random_background", "lambda_layout", "coverage_height", "extent",
+               "background", "device"}  # resolved from the preset / projection, or derived by the stage
     shared = [name for name in TrainConfig.setting_names() if name in Params.model_fields]
     assert len(shared) > 40
     for name in shared:
