@@ -105,13 +105,14 @@ def diagnose_run(scene, run: Path) -> list[dict]:
     what closing the holes with that colour would give), PSNR with the mean of the training
     panoramas' learned appearance transforms applied (the gauge), the alpha on dark pixels, and the
     distance to the nearest training camera. Renders as the evaluate stage does (crops stitched from their
-    rig) at its resolution, against a black background, and reads its ground truth."""
+    rig, against the background the model was trained against) at its resolution, and reads its ground
+    truth."""
     import torch
 
     from evaluation import metrics as M
-    from evaluation.model_io import equirect_camera, load_model, render_pose
+    from evaluation.model_io import equirect_camera, load_model, recorded_background, render_pose
     from panogeom.images import read_rgb
-    from pipeline.engine import complete_scene, read_output
+    from pipeline.engine import complete_scene, read_meta, read_output
     from pipeline.registry import build_registry
     from schemas.scene_loader import valid_mask
     from stages.evaluate import stitch_rig
@@ -119,6 +120,10 @@ def diagnose_run(scene, run: Path) -> list[dict]:
     done = complete_scene(scene, run, build_registry())
     tdata, ev = read_output(run, "train"), read_output(run, "evaluate")
     g = load_model(run / "train" / "point_cloud.ply")
+    meta = read_meta(run / "train")
+    background = np.asarray(
+        recorded_background(tdata.settings, None if meta is None else meta.params) or (0.0, 0.0, 0.0)
+    )
     h, w = ev.resolution
     lat = 90.0 - (np.arange(h) + 0.5) * 180.0 / h
     train = [v for v in done.manifest.views if v.split == "train" and v.pose is not None]
@@ -143,14 +148,17 @@ def diagnose_run(scene, run: Path) -> list[dict]:
             continue
         gt = read_rgb(run / "evaluate" / "gt" / f"{v.name}.png").astype(np.float32)
         gt = gt / 255.0 if gt.max() > 1.5 else gt
+        # drawn against black, so that both the evaluated render (over the trained background) and the
+        # holes filled by the training mean are one blend away
         r = render_pose(
             g, v.pose_matrix, equirect_camera(h, w), background=torch.zeros(3), rig=stitch_rig(tdata, (h, w))
         )
+        image = np.clip(r.image + (1.0 - r.alpha[..., None]) * background, 0.0, 1.0)
         mask = valid_mask(done, v, h, w)
         mask = np.ones((h, w), bool) if mask is None else mask
-        fitted = M.colour_fit(r.image, gt, mask)
+        fitted = M.colour_fit(image, gt, mask)
         filled = np.clip(r.image + (1.0 - r.alpha[..., None]) * train_mean, 0.0, 1.0)
-        err, err_fit = ((r.image - gt) ** 2).mean(-1), ((fitted - gt) ** 2).mean(-1)
+        err, err_fit = ((image - gt) ** 2).mean(-1), ((fitted - gt) ** 2).mean(-1)
         dark = gt.mean(-1) < 0.2
         row = {
             "view": v.name,
@@ -160,11 +168,11 @@ def diagnose_run(scene, run: Path) -> list[dict]:
             "psnr": _psnr(err[mask].mean()),
             "psnr_logged": logged[v.name].psnr if v.name in logged else None,
             "psnr_colorfit": _psnr(err_fit[mask].mean()),
-            "ssim": M.ssim(r.image, gt, mask=mask),
+            "ssim": M.ssim(image, gt, mask=mask),
             "ssim_colorfit": M.ssim(fitted, gt, mask=mask),
             "psnr_filled": _psnr(((filled - gt) ** 2).mean(-1)[mask].mean()),
             "psnr_gauge": (
-                _psnr(((np.clip(r.image * gauge[0] + gauge[1], 0, 1) - gt) ** 2).mean(-1)[mask].mean())
+                _psnr(((np.clip(image * gauge[0] + gauge[1], 0, 1) - gt) ** 2).mean(-1)[mask].mean())
                 if gauge is not None
                 else None
             ),
@@ -173,7 +181,7 @@ def diagnose_run(scene, run: Path) -> list[dict]:
             # where the alpha is low: the dark ground-truth pixels (luminance < 0.2), their share and alpha
             "dark_share": float(dark[mask].mean()),
             "dark_alpha": float(r.alpha[mask & dark].mean()) if (mask & dark).any() else None,
-            "render_rgb": [round(float(x) * 255, 1) for x in r.image[mask].mean(0)],
+            "render_rgb": [round(float(x) * 255, 1) for x in image[mask].mean(0)],
             "gt_rgb": [round(float(x) * 255, 1) for x in gt[mask].mean(0)],
             "train_rgb": [round(float(x) * 255, 1) for x in train_mean],  # the training panoramas' mean
             "gauge_gain_bias": None
@@ -188,7 +196,7 @@ def diagnose_run(scene, run: Path) -> list[dict]:
                     _psnr(err_fit[m].mean()),
                 )
                 row[f"{band}_holes"] = float((r.alpha[m] < 0.5).mean())
-                row[f"{band}_ssim"] = M.ssim(r.image, gt, mask=m)  # the band's pixels, the rest zeroed
+                row[f"{band}_ssim"] = M.ssim(image, gt, mask=m)  # the band's pixels, the rest zeroed
         rows.append(row)
     return rows
 
