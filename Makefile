@@ -62,7 +62,7 @@ demo: setup
 	$(BIN)/pano-pipe report $(DEMO_SCENE)
 
 test: setup-test
-	$(PY) -m pytest -q -n 2 --dist loadfile
+	$(PY) -m pytest -q -n 2 --dist loadfile --durations=15
 
 bench: setup
 	$(BIN)/pano-pipe bench render --out docs
