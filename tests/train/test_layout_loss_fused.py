@@ -139,3 +139,30 @@ def test_a_repeated_row_counts_twice():
     (want_v, want_g), (got_v, got_g) = _reference(means, idx2, u02, n2), _fused(means, idx2, u02, n2)
     assert abs(float(got_v - want_v)) <= 1e-12 * abs(float(want_v))
     assert torch.allclose(got_g, want_g, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_dead_zone_frees_small_displacements_only(seed):
+    """`deadzone` (the official code's normal_threshold): rows within it of their anchor give 0 and
+    no gradient, the others exactly what the term gives without it; the fused form agrees."""
+    means, idx, u0, normals = _case(300, 200, seed)
+    deadzone = 0.4  # the case's displacements are 0.3·N(0, 1) per axis: about half within
+    length = torch.linalg.vector_norm(means[idx] - u0, dim=-1)
+    inside = length <= deadzone
+    assert 0.2 < float(inside.double().mean()) < 0.8
+    m = means.detach().clone().requires_grad_(True)
+    val = layout_loss(m[idx], u0, normals, deadzone=deadzone)
+    (want,) = torch.autograd.grad(val, m)
+    outside_rows = ~inside
+    cos = layout_loss(means[idx][outside_rows], u0[outside_rows], normals[outside_rows])
+    assert float(val) == pytest.approx(float(cos) * int(outside_rows.sum()) / len(idx), rel=1e-12)
+    assert torch.all(want[idx[inside]] == 0)
+    ordinary = outside_rows.clone()
+    ordinary[:8] = False  # the case's special rows (degenerate normals, d ⟂ n) have no gradient anyway
+    assert torch.all(torch.linalg.vector_norm(want[idx[ordinary]], dim=-1) > 0)
+    m2 = means.detach().clone().requires_grad_(True)
+    got_v = layout_loss_rows(m2, idx, u0, normals, deadzone=deadzone)
+    (got,) = torch.autograd.grad(got_v, m2)
+    assert abs(float(got_v - val)) <= 1e-12 * abs(float(val))
+    err = torch.linalg.vector_norm(got - want, dim=-1)
+    assert torch.all(err <= 1e-12 * torch.linalg.vector_norm(want, dim=-1) + 1e-300)
