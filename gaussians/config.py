@@ -30,9 +30,6 @@ class LossConfig:
     #: displacements from the anchor up to this length (scene units) are free of L_layout: the
     #: official 360-GS code's `normal_threshold` (0 there and here: the paper's term everywhere)
     layout_deadzone: float = 0.0
-    #: weight of L_orient = mean over layout Gaussians of 1 − (a·n̂)², a the Gaussian's shortest axis:
-    #: a layout Gaussian lies flat in its plane (the official 360-GS code's `lambda_wscale`, 0 there too)
-    lambda_layout_orient: float = 0.0
     #: weigh each panorama pixel's L1 and SSIM by its solid angle (cos latitude), so the loss counts
     #: every steradian alike (perspective views are unweighted)
     solid_angle_weighting: bool = False

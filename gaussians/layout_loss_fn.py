@@ -70,7 +70,6 @@ class LayoutRows:
         self.idx = idx
         self.deadzone = float(deadzone)
         self.u0 = u0
-        self.normals = normals
         nn = torch.linalg.vector_norm(normals, dim=-1, keepdim=True).clamp_min(1e-12)
         self.nhat_k = normals / (nn * max(int(idx.shape[0]), 1))
         self.eps = torch.full((), float(eps), dtype=u0.dtype, device=u0.device)

@@ -7,8 +7,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-__all__ = ["l1_loss", "ssim", "psnr", "psnr_tensor", "layout_loss", "layout_orientation_loss", "photometric_loss",
-           "LAYOUT_EPS",
+__all__ = ["l1_loss", "ssim", "psnr", "psnr_tensor", "layout_loss", "photometric_loss", "LAYOUT_EPS",
            "ssim_map", "solid_angle_weight"]
 
 #: Displacement (metres) below which L_layout fades to 0: it regularises the
@@ -218,23 +217,6 @@ def layout_loss(means: torch.Tensor, u0: torch.Tensor, normals: torch.Tensor, ma
     if deadzone > 0:
         cos = torch.where((d * d).sum(-1) > deadzone * deadzone, cos, torch.zeros_like(cos))
     return cos.mean()
-
-
-def layout_orientation_loss(rotations: torch.Tensor, log_scales: torch.Tensor, normals: torch.Tensor
-                            ) -> torch.Tensor:
-    """L_orient = mean of 1 − (a·n̂)² over Gaussians with rotation matrices `rotations` [K,3,3]
-    (columns: the local axes in the world), `log_scales` [K,3] and plane normals `normals` [K,3]:
-    a is the axis of the smallest scale (chosen, not differentiated), n̂ the unit normal. 0 when the
-    shortest axis is the normal (the Gaussian lies flat in its plane), 1 when it lies in the plane.
-    The squared cosine keeps it smooth where the official code's |sin| has a kink; a zero normal
-    gives 1 and no gradient. No row -> 0 (still attached to the graph)."""
-    if rotations.shape[0] == 0:
-        return rotations.sum() * 0.0
-    k = log_scales.detach().argmin(-1)  # [K]
-    axis = torch.gather(rotations, 2, k.view(-1, 1, 1).expand(-1, 3, 1)).squeeze(-1)  # column k, [K,3]
-    nhat = normals / torch.linalg.vector_norm(normals, dim=-1, keepdim=True).clamp_min(1e-12)
-    cos = (axis * nhat).sum(-1)
-    return (1.0 - cos * cos).mean()
 
 
 def photometric_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_l1: float = 0.8, lambda_dssim: float = 0.2,

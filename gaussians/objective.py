@@ -5,7 +5,6 @@
          + λ_app · appearance regulariser (+ its gauge)
          + λ_cov · mean(1 − alpha) from a point between two training cameras
          + λ3 · L_layout                         (layout Gaussians moving off their planes)
-         + λ_orient · L_orient                   (layout Gaussians turning out of their planes)
 
 It keeps what the terms reuse between iterations (solid-angle weights, crop resamplers and
 ground-truth crops, the layout Gaussians' rows); :meth:`TrainingObjective.model_changed` drops
@@ -20,9 +19,8 @@ import torch
 
 import splatting
 from gaussians.crop_loss import CropResampler, crop_photometric_loss
-from gaussians.densify import quat_to_rotmat
 from gaussians.layout_loss_fn import LayoutRows
-from gaussians.losses import layout_orientation_loss, photometric_loss, solid_angle_weight
+from gaussians.losses import photometric_loss, solid_angle_weight
 from gaussians.model import Gaussians, render
 
 __all__ = ["TrainingObjective", "LossTerms"]
@@ -80,21 +78,17 @@ class TrainingObjective:
         if cfg.loss.lambda_coverage > 0:
             terms.coverage = self._coverage_loss(drawn, background, generator)
             terms.loss = terms.loss + cfg.loss.lambda_coverage * terms.coverage
-        layout_terms = cfg.loss.layout_reg and (cfg.loss.lambda_layout > 0 or cfg.loss.lambda_layout_orient > 0)
-        if layout_terms and self._layout_rows is None:
-            # the layout Gaussians' rows, anchors and normals change only with densification:
-            # selected once, not by the mask at every step
-            idx = torch.nonzero(g.is_layout).squeeze(1)
-            self._layout_rows = LayoutRows(idx, g.u0[idx], g.normals[idx], deadzone=cfg.loss.layout_deadzone)
-        rows = self._layout_rows
-        if layout_terms and len(rows) and cfg.loss.lambda_layout > 0:
-            # gaussians.losses.layout_loss(g.means[idx], u0, normals), its gradient in closed form
-            terms.layout = rows.loss(g.means)
-            terms.loss = terms.loss + cfg.loss.lambda_layout * terms.layout
-        if layout_terms and len(rows) and cfg.loss.lambda_layout_orient > 0:
-            orient = layout_orientation_loss(quat_to_rotmat(g.quats[rows.idx]), g.log_scales[rows.idx],
-                                             rows.normals)
-            terms.loss = terms.loss + cfg.loss.lambda_layout_orient * orient
+        if cfg.loss.layout_reg and cfg.loss.lambda_layout > 0:
+            if self._layout_rows is None:
+                # the layout Gaussians' rows, anchors and normals change only with densification:
+                # selected once, not by the mask at every step
+                idx = torch.nonzero(g.is_layout).squeeze(1)
+                self._layout_rows = LayoutRows(idx, g.u0[idx], g.normals[idx], deadzone=cfg.loss.layout_deadzone)
+            rows = self._layout_rows
+            if len(rows):
+                # gaussians.losses.layout_loss(g.means[idx], u0, normals), its gradient in closed form
+                terms.layout = rows.loss(g.means)
+                terms.loss = terms.loss + cfg.loss.lambda_layout * terms.layout
         return terms
 
     def _crop_targets(self, view):

@@ -146,10 +146,6 @@ class Params(StageParams):
         default=_TRAINER["layout_deadzone"], ge=0,
         description="Displacements from a layout Gaussian's anchor up to this length (scene units) are free "
         "of L_layout (the official 360-GS code's normal_threshold); 0 = the paper's term everywhere.")
-    lambda_layout_orient: float = Field(
-        default=_TRAINER["lambda_layout_orient"], ge=0,
-        description="Weight of L_orient: a layout Gaussian's shortest axis along its plane normal (the official "
-        "360-GS code's lambda_wscale); with layout_reg only. 0 = off.")
     lr_scale: float | None = Field(
         default=None, gt=0, description="Multiplies every learning rate below. None = the projection's default: "
         "0.5 for 360 (a panorama iteration updates every Gaussian, a crop iteration about a quarter of them), "
