@@ -27,9 +27,10 @@ class LossConfig:
     lambda_dssim: float = 0.2
     lambda_layout: float = 0.1
     layout_reg: bool = True
-    #: displacements from the anchor up to this length (scene units) are free of L_layout: the
-    #: official 360-GS code's `normal_threshold` (0 there and here: the paper's term everywhere)
-    layout_deadzone: float = 0.0
+    #: displacements from the anchor up to this length (scene units: 5 cm in a metric scene) are
+    #: free of L_layout: the official 360-GS code's `normal_threshold` (0 there: the paper's term,
+    #: which locks a layout Gaussian at its anchor and cost every scene measured, docs/training.md)
+    layout_deadzone: float = 0.05
     #: weigh each panorama pixel's L1 and SSIM by its solid angle (cos latitude), so the loss counts
     #: every steradian alike (perspective views are unweighted)
     solid_angle_weighting: bool = False

@@ -145,7 +145,8 @@ class Params(StageParams):
     layout_deadzone: float = Field(
         default=_TRAINER["layout_deadzone"], ge=0,
         description="Displacements from a layout Gaussian's anchor up to this length (scene units) are free "
-        "of L_layout (the official 360-GS code's normal_threshold); 0 = the paper's term everywhere.")
+        "of L_layout (the official 360-GS code's normal_threshold); 0 = the paper's term everywhere, which "
+        "locks a layout Gaussian at its anchor.")
     lr_scale: float | None = Field(
         default=None, gt=0, description="Multiplies every learning rate below. None = the projection's default: "
         "0.5 for 360 (a panorama iteration updates every Gaussian, a crop iteration about a quarter of them), "
