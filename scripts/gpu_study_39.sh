@@ -31,6 +31,8 @@ PREP=.g39
 SCENES=(zind_a zind_b flat3)
 declare -A SCENE_DIR=([zind_a]=zind/zind_a [zind_b]=zind/zind_b [flat3]=flat3)
 declare -A EXTRA=([zind_a]="" [zind_b]="" [flat3]="--set poses.working_height=256")
+# where a layout is supplied, also the pipeline's own default: 360 with the layout term (its dead zone)
+declare -A LAYOUT_VARIANTS=([zind_a]="360+reg" [zind_b]="360+reg" [flat3]="")
 COMMON=(--set train.appearance=true --set evaluate.lpips=false)
 
 case "${1:-}" in
@@ -63,11 +65,13 @@ run)
     for v in ${VARIANTS:-crops 360}; do variants+=(--variant "$v"); done
     pids=()
     for s in "${SCENES[@]}"; do
+        scene_variants=("${variants[@]}")
+        for v in ${LAYOUT_VARIANTS[$s]}; do scene_variants+=(--variant "$v"); done
         for seed in $(seq 0 $((${SEEDS:-3} - 1))); do
             # shellcheck disable=SC2086
             "$PY" scripts/study_360.py "$PREP/${SCENE_DIR[$s]}" --base "$PREP/base_$s" --out "$PREP/$s-s$seed.jsonl" \
                 --first-seed "$seed" --seeds 1 "${COMMON[@]}" ${EXTRA[$s]} --set train.preset=paper \
-                --set train.device="$DEVICE" ${STUDY_SETS:-} "${variants[@]}" > "$PREP/$s-s$seed.log" 2>&1 &
+                --set train.device="$DEVICE" ${STUDY_SETS:-} "${scene_variants[@]}" > "$PREP/$s-s$seed.log" 2>&1 &
             pids+=($!)
         done
     done
