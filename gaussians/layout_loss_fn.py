@@ -10,8 +10,9 @@ r = sqrt(‖d‖² + eps²) (eps as in layout_loss: 0/0 at μ = u0 becomes 0 wit
 (computed with n̂/K in place of n̂, so that the mean and the 1/K come for free).
 
 The forward computes both and scatters the gradient into a full-size [N,3] tensor, zero outside
-the rows; the backward is one multiplication by the incoming gradient (no index backward, no
-chain of elementwise backward operations). The rows, their anchors and unit normals change only
+the rows (where the training kernels run, one Triton launch: splatting/layout_triton.py); the
+backward is one multiplication by the incoming gradient (no index backward, no chain of
+elementwise backward operations). The rows, their anchors and unit normals change only
 with densification: :class:`LayoutRows` keeps them (and eps as a tensor on their device).
 """
 
@@ -20,6 +21,7 @@ from __future__ import annotations
 import torch
 
 from gaussians.losses import LAYOUT_EPS
+from splatting import layout_triton
 
 __all__ = ["LayoutRows", "layout_loss_rows"]
 
@@ -27,8 +29,13 @@ __all__ = ["LayoutRows", "layout_loss_rows"]
 class _LayoutLoss(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means: torch.Tensor, idx: torch.Tensor, u0: torch.Tensor, nhat_k: torch.Tensor,
-                eps: torch.Tensor, deadzone: float) -> torch.Tensor:
-        """`nhat_k`: the unit normals divided by K (the mean's 1/K folded in once)."""
+                eps: torch.Tensor, deadzone: float, eps_value: float) -> torch.Tensor:
+        """`nhat_k`: the unit normals divided by K (the mean's 1/K folded in once); `eps` as a
+        tensor on the means' device (torch) and as a number (`eps_value`, the kernel: no host read)."""
+        if idx.shape[0] and _on_kernel(means, u0, nhat_k):
+            value, full = layout_triton.layout_value_and_gradient(means, idx, u0, nhat_k, eps_value, deadzone)
+            ctx.save_for_backward(full)
+            return value
         full = torch.zeros_like(means, memory_format=torch.contiguous_format)
         if idx.shape[0] == 0:  # no row: 0, still attached to the graph, a zero gradient
             ctx.save_for_backward(full)
@@ -51,7 +58,15 @@ class _LayoutLoss(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad: torch.Tensor):
         (full,) = ctx.saved_tensors
-        return full * grad, None, None, None, None, None
+        return full * grad, None, None, None, None, None, None
+
+
+def _on_kernel(means: torch.Tensor, u0: torch.Tensor, nhat_k: torch.Tensor) -> bool:
+    """One Triton launch instead of ~20 operations: where the training kernels run
+    (splatting.devices.takes_kernels), with the layouts the kernel reads."""
+    from splatting.devices import takes_kernels
+
+    return takes_kernels(means) and means.stride(1) == 1 and u0.is_contiguous() and nhat_k.is_contiguous()
 
 
 def layout_loss_rows(means: torch.Tensor, idx: torch.Tensor, u0: torch.Tensor, normals: torch.Tensor,
@@ -73,10 +88,11 @@ class LayoutRows:
         nn = torch.linalg.vector_norm(normals, dim=-1, keepdim=True).clamp_min(1e-12)
         self.nhat_k = normals / (nn * max(int(idx.shape[0]), 1))
         self.eps = torch.full((), float(eps), dtype=u0.dtype, device=u0.device)
+        self.eps_value = float(eps)
 
     def __len__(self) -> int:
         return int(self.idx.shape[0])
 
     def loss(self, means: torch.Tensor) -> torch.Tensor:
         """L_layout of means[idx] (a 0-dim tensor; its gradient reaches `means` directly)."""
-        return _LayoutLoss.apply(means, self.idx, self.u0, self.nhat_k, self.eps, self.deadzone)
+        return _LayoutLoss.apply(means, self.idx, self.u0, self.nhat_k, self.eps, self.deadzone, self.eps_value)

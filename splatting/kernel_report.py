@@ -183,6 +183,9 @@ def _mock_launches(dtype_name: str, H: int, W: int, ts: int):
         u8 = Mock(torch.uint8)
         out.append(("densify statistics", densify_triton.add_launch(f, u8, i32, f, f, f, N, 2, 1, 6, 81.5, 163.0),
                     None))
+        from . import layout_triton  # L_layout's value and gradient
+
+        out.append(("layout loss", layout_triton.layout_launch(f, i64, f, f, f, f, N, 3, 1e-12, 0.05), None))
     if dtype_name == "float32":  # integer only: the same kernel for every working dtype
         out.append(("emit pairs", bin_triton.emit_launch(i32, i64, i32, i32, i32, 1 << 22, ts, W // ts, N), None))
     return out

@@ -166,3 +166,60 @@ def test_the_dead_zone_frees_small_displacements_only(seed):
     assert abs(float(got_v - val)) <= 1e-12 * abs(float(val))
     err = torch.linalg.vector_norm(got - want, dim=-1)
     assert torch.all(err <= 1e-12 * torch.linalg.vector_norm(want, dim=-1) + 1e-300)
+
+
+# the Triton kernel (splatting/layout_triton.py): what a GPU runs; here through the interpreter.
+# `cuda`: `make gpu-check` runs these with the compiled kernel
+_KERNEL_DEVICE = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def _kernel_case(dtype, deadzone, seed, monkeypatch):
+    from splatting import devices, layout_triton
+
+    if not layout_triton.available():
+        pytest.skip("triton is not installed")
+    means, idx, u0, normals = _case(1300, 1100, seed)  # three programs of 512
+    normals[3] /= 1e120  # the case's huge and tiny normals, brought into float32's range
+    normals[5] /= 1e70
+    normals[4] *= 1e138
+    idx = torch.cat([idx, idx[:5]])  # repeated rows: the sum of their terms
+    u0 = torch.cat([u0, u0[:5]])
+    normals = torch.cat([normals, normals[:5]])
+    means, u0, normals = means.to(dtype), u0.to(dtype), normals.to(dtype)
+    ref = LayoutRows(idx, u0, normals, deadzone=deadzone)
+    m = means.clone().requires_grad_(True)
+    want_v = ref.loss(m)
+    (want_g,) = torch.autograd.grad(want_v, m)
+    monkeypatch.setattr(devices, "KERNELS_ON_CPU", True)
+    dev = _KERNEL_DEVICE
+    rows = LayoutRows(idx.to(dev), u0.to(dev), normals.to(dev), deadzone=deadzone)
+    m2 = means.to(dev).requires_grad_(True)
+    return rows, m2, want_v, want_g
+
+
+@pytest.mark.cuda
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("deadzone", [0.0, 0.4])
+def test_the_kernel_gives_the_torch_value_and_gradient(dtype, deadzone, monkeypatch):
+    rows, m, want_v, want_g = _kernel_case(dtype, deadzone, 1, monkeypatch)
+    got_v = rows.loss(m)
+    (got_g,) = torch.autograd.grad(got_v, m)
+    tol = 1e-12 if dtype == torch.float64 else 2e-6
+    assert abs(float(got_v) - float(want_v)) <= tol * abs(float(want_v))
+    err = torch.linalg.vector_norm(got_g.cpu() - want_g, dim=-1)
+    assert torch.all(err <= tol * 10 * torch.linalg.vector_norm(want_g, dim=-1) + 1e-30), err.max()
+    assert torch.all(torch.isfinite(got_g))
+
+
+@pytest.mark.cuda
+def test_the_kernel_is_one_launch_and_no_sync(monkeypatch):
+    rows, m, _, _ = _kernel_case(torch.float32, 0.05, 2, monkeypatch)
+    seed = torch.full((), 0.1, device=m.device)  # λ3, the gradient the loss's sum hands it
+    with DispatchCounter() as counter:
+        value = rows.loss(m)
+        value.backward(seed)
+    kernels = sum(counter.kernels.values())
+    assert kernels == 1 and not counter.sync_ops, counter.summary()
+    # one zeroed buffer (the gradient and the value), the launch, the backward's multiplication:
+    # against ~20 operations in torch
+    assert counter.device_ops <= 3, counter.summary()
