@@ -41,6 +41,7 @@ class Adam:
         #: the fused kernel's step count, one float32 0-dim tensor per device, always equal to
         #: step_count (derived from it: rebuilt after a load or a move, refilled at each step)
         self._steps: dict[torch.device, torch.Tensor] = {}
+        self._ones: dict[torch.device, torch.Tensor] = {}
 
     def _step_tensor(self, device: torch.device) -> torch.Tensor:
         t = self._steps.get(device)
@@ -56,18 +57,37 @@ class Adam:
                 self.exp_avg_sq[k] = torch.zeros_like(p.detach())
 
     @torch.no_grad()
-    def step(self, g: Gaussians) -> None:
-        """One update of every parameter of `g` that has a gradient."""
+    def step(self, g: Gaussians) -> torch.Tensor:
+        """One update of every parameter of `g` that has a gradient. A gradient value that is not
+        finite is taken as 0; returns a 0-dim float32 tensor on the parameters' device, 1.0 when
+        some was (a tensor: reading it would wait for a GPU)."""
         self._init_state(g)
         self.step_count += 1
+        items = [(getattr(g, k), lr) for k, lr in self.lrs.items()]
+        # as torch.optim.Adam: no gradient, no update (e.g. SH bands not yet in use)
+        items = [(p, p.grad, self.exp_avg[k], self.exp_avg_sq[k], lr)
+                 for k, (p, lr) in zip(self.lrs, items) if p.grad is not None]
+        if not items:
+            return torch.zeros((), dtype=torch.float32)
+        found = torch.zeros((), dtype=torch.float32, device=items[0][0].device)
+        if _one_launch_ok(items):
+            # every tensor, the finite check and the zeroing in one launch (splatting/adam_triton.py)
+            from splatting import adam_triton
+
+            adam_triton.step_([(p.detach(), gr, m, v, lr) for p, gr, m, v, lr in items], self.step_count,
+                              self.betas, self.eps, found)
+            return found
+        grads = [gr for _, gr, _, _, _ in items if gr.numel()]
+        if grads:
+            # one multi-tensor pass for the flag (AMP's check-and-unscale by 1.0: values unchanged)
+            torch._amp_foreach_non_finite_check_and_unscale_(grads, found, self._one(found.device))
+            # on the CPU reading the flag costs nothing, and saves a pass over every gradient
+            if found.device.type != "cpu" or bool(found):
+                for gr in grads:
+                    torch.nan_to_num_(gr, nan=0.0, posinf=0.0, neginf=0.0)
         b1, b2 = self.betas
         refilled: set[torch.device] = set()
-        for k, lr in self.lrs.items():
-            p = getattr(g, k)
-            grad = p.grad
-            if grad is None:  # as torch.optim.Adam: no gradient, no update (e.g. SH bands not yet in use)
-                continue
-            m, v = self.exp_avg[k], self.exp_avg_sq[k]
+        for p, grad, m, v, lr in items:
             if _fused_ok(p, grad, m, v):
                 # torch's fused Adam kernel, called directly: one pass over the parameter, its
                 # gradient and both moments, one launch per tensor (each has its own lr). The
@@ -87,6 +107,14 @@ class Adam:
             v.mul_(b2).addcmul_(grad, grad, value=1.0 - b2)
             denom = (v.sqrt() / math.sqrt(bc2)).add_(self.eps)
             p.addcdiv_(m, denom, value=-lr / bc1)
+        return found
+
+    def _one(self, device: torch.device) -> torch.Tensor:
+        """A float32 1.0 on `device`, made once (the finite check's unscale factor)."""
+        t = self._ones.get(device)
+        if t is None:
+            t = self._ones[device] = torch.ones((), dtype=torch.float32, device=device)
+        return t
 
     @staticmethod
     def zero_grad(g: Gaussians) -> None:
@@ -164,6 +192,18 @@ def _fused_ok(p: torch.Tensor, *others: torch.Tensor) -> bool:
     and CUDA floating tensors, contiguous, all of one dtype and device)."""
     return p.device.type in ("cpu", "cuda") and p.dtype in (torch.float32, torch.float64) and p.is_contiguous() \
         and all(t.dtype == p.dtype and t.device == p.device and t.is_contiguous() for t in others)
+
+
+def _one_launch_ok(items) -> bool:
+    """Whether one Triton launch takes every (parameter, gradient, moments, lr) of `items`: where
+    the training kernels run (splatting.devices.takes_kernels), all contiguous, of one floating
+    dtype and device."""
+    from splatting import adam_triton
+    from splatting.devices import takes_kernels
+
+    p0 = items[0][0]
+    return len(items) <= adam_triton.SLOTS and takes_kernels(p0) and p0.dtype in (torch.float32, torch.float64) \
+        and all(_fused_ok(p0, p, gr, m, v) for p, gr, m, v, _ in items)
 
 
 def _real(x: object) -> bool:

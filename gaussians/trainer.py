@@ -35,7 +35,7 @@ from gaussians.config import TrainConfig
 from gaussians.densify import DensifyStats
 from gaussians.losses import psnr, psnr_tensor
 from gaussians.mip_filter import filter_variance, filtered, sampling_rate
-from gaussians.model import PARAM_NAMES, Gaussians, render
+from gaussians.model import Gaussians, render
 from gaussians.objective import TrainingObjective
 from gaussians.optim import Adam, expon_lr
 from gaussians.strategy import DensifyStrategy
@@ -83,24 +83,6 @@ def scene_extent(points: np.ndarray | torch.Tensor, low: float = 1.0, high: floa
         return 1.0
     lo, hi = np.percentile(p, low, axis=0), np.percentile(p, high, axis=0)
     return float(max(0.5 * np.linalg.norm(hi - lo), 0.1))
-
-
-def _nonfinite_flag(tensors: list[torch.Tensor], one: torch.Tensor | None = None) -> torch.Tensor:
-    """0-dim float32 on the tensors' device: 1.0 when some value of some tensor is not finite,
-    else 0.0. One multi-tensor pass over all of them (AMP's check-and-unscale, by `one`, a
-    float32 1.0 on their device: the values stay as they are), no host sync."""
-    device = tensors[0].device if tensors else None if one is None else one.device
-    found = torch.zeros((), dtype=torch.float32, device=device)
-    if tensors:
-        if one is None:
-            one = torch.ones((), dtype=torch.float32, device=device)
-        torch._amp_foreach_non_finite_check_and_unscale_(tensors, found, one)
-    return found
-
-
-def _all_finite(tensors: list[torch.Tensor]) -> torch.Tensor:
-    """0-dim bool: every value of every tensor finite (no host sync)."""
-    return _nonfinite_flag(tensors) == 0
 
 
 class _Laps:
@@ -331,16 +313,9 @@ class Trainer:
         """Adam on every parameter (non-finite gradients zeroed and counted, without a host sync
         on a GPU), the appearance transforms' step, then the parameters kept valid."""
         g = self.g
-        grads = [p.grad for p in (getattr(g, k) for k in PARAM_NAMES) if p.grad is not None and p.grad.numel()]
-        # one multi-tensor pass for the flag (1.0: some value not finite); counted as a 0-dim
+        # the flag (1.0: some gradient value was not finite, and taken as 0) is counted as a 0-dim
         # tensor, read only when the log or a checkpoint wants the number
-        found = _nonfinite_flag(grads, self._consts("one", 1.0))
-        self.nonfinite_steps = self.nonfinite_steps + found
-        # on the CPU reading the flag costs nothing, and saves a pass over every gradient
-        if self.device.type != "cpu" or bool(found):
-            for gr in grads:
-                torch.nan_to_num_(gr, nan=0.0, posinf=0.0, neginf=0.0)
-        self.opt.step(g)
+        self.nonfinite_steps = self.nonfinite_steps + self.opt.step(g)
         if self.appearance is not None:
             self.appearance.step()
         Adam.zero_grad(g)

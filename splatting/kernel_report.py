@@ -186,6 +186,11 @@ def _mock_launches(dtype_name: str, H: int, W: int, ts: int):
         from . import layout_triton  # L_layout's value and gradient
 
         out.append(("layout loss", layout_triton.layout_launch(f, i64, f, f, f, f, N, 3, 1e-12, 0.05), None))
+        from . import adam_triton  # the optimiser's step over every parameter
+
+        params = [Mock(f.dtype, [N, c]) for c in (3, 4, 3, 1, 3, 45)]
+        out.append(("adam", adam_triton.adam_launch([(p, p, p, p, 1e-3) for p in params], 10, (0.9, 0.999), 1e-15, f),
+                    None))
     if dtype_name == "float32":  # integer only: the same kernel for every working dtype
         out.append(("emit pairs", bin_triton.emit_launch(i32, i64, i32, i32, i32, 1 << 22, ts, W // ts, N), None))
     return out

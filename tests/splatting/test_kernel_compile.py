@@ -16,9 +16,11 @@ REG_BUDGET = {"forward": 128, "backward": 255, "backward + depth, alpha": 255, "
               "project backward (RGB)": 255, "project backward (SH 3)": 255,
               # the training loss's image passes (2 pixels a thread, 11 taps of 5 moments in flight)
               "loss: moments": 192, "loss: SSIM": 192, "loss: sum": 64, "loss backward: blur": 64,
-              "loss backward: combine": 160, "random turn": 128, "densify statistics": 64, "layout loss": 64}
+              "loss backward: combine": 160, "random turn": 128, "densify statistics": 64, "layout loss": 64,
+              "adam": 64}
 # the trainer's kernels beside the renderer: float32, what training runs
-LOSS_KERNELS = [k for k in REG_BUDGET if k.startswith("loss")] + ["random turn", "densify statistics", "layout loss"]
+LOSS_KERNELS = [k for k in REG_BUDGET if k.startswith("loss")] + ["random turn", "densify statistics", "layout loss",
+                                                                  "adam"]
 # SASS instructions per Gaussian-pixel pair in the float32 inner loops (issue 26's targets)
 PAIR_BUDGET = {"forward": 40, "backward": 120, "backward + depth, alpha": 120}
 
