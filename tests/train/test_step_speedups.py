@@ -3,6 +3,8 @@ check, SSIM's closed-form gradient, the skipped black background; and it reports
 
 from __future__ import annotations
 
+import os
+
 import pytest
 import torch
 import torch.nn.functional as F
@@ -46,9 +48,23 @@ def test_adam_step_is_the_textbook_update(dtype):
 class _Many:
     """Several tensors with gradients, as Adam reads them from a Gaussians."""
 
-    def __init__(self, shapes, dtype=torch.float32):
+    def __init__(self, shapes, dtype=torch.float32, device="cpu"):
         for k, shape in shapes.items():
-            setattr(self, k, torch.randn(*shape, dtype=dtype, requires_grad=True))
+            setattr(self, k, torch.randn(*shape, dtype=dtype).to(device).requires_grad_(True))
+
+
+# Adam's one Triton launch (splatting/adam_triton.py): what a GPU runs; here through the
+# interpreter. `cuda`: `make gpu-check` runs these with the compiled kernel
+_KERNEL_DEVICE = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def _kernel_path(monkeypatch) -> torch.device:
+    from splatting import adam_triton, devices
+
+    if not adam_triton.available():
+        pytest.skip("triton is not installed")
+    monkeypatch.setattr(devices, "KERNELS_ON_CPU", True)
+    return _KERNEL_DEVICE
 
 
 def test_adam_step_dispatches_one_kernel_per_tensor():
@@ -114,9 +130,9 @@ def test_a_nonfinite_gradient_is_zeroed_and_counted(tiny_room, path, monkeypatch
     tr.step()
     assert int(tr.nonfinite_steps) == 0
     if path == "kernel":
-        from splatting import devices
-
-        monkeypatch.setattr(devices, "KERNELS_ON_CPU", True)
+        if os.environ.get("TRITON_INTERPRET") != "1":  # the trainer's tensors are on the CPU
+            pytest.skip("the kernel path on CPU tensors runs in the interpreter (the cuda tests below: on a GPU)")
+        _kernel_path(monkeypatch)
     before = tr.g.means.detach().clone()
     for k in PARAM_NAMES:
         p = getattr(tr.g, k)
@@ -165,15 +181,12 @@ def test_ema_is_the_same_average_in_one_operation():
     assert ema3.loss == pytest.approx(0.7) and ema3.psnr == pytest.approx(17.0)
 
 
-@pytest.mark.parametrize("path", ["torch", "kernel"])
+@pytest.mark.parametrize("path", ["torch", pytest.param("kernel", marks=pytest.mark.cuda)])
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf"), None])
 def test_adam_flags_any_nonfinite_gradient_value(bad, path, monkeypatch):
-    if path == "kernel":
-        from splatting import devices
-
-        monkeypatch.setattr(devices, "KERNELS_ON_CPU", True)
+    device = _kernel_path(monkeypatch) if path == "kernel" else "cpu"
     shapes = {"means": (100, 3), "opacity_logits": (7,), "sh_rest": (4, 15, 3)}
-    g = _Many(shapes)
+    g = _Many(shapes, device=device)
     for k in shapes:
         getattr(g, k).grad = torch.randn_like(getattr(g, k))
     if bad is not None:
@@ -183,31 +196,33 @@ def test_adam_flags_any_nonfinite_gradient_value(bad, path, monkeypatch):
     assert all(bool(torch.isfinite(getattr(g, k)).all()) for k in shapes)
 
 
+@pytest.mark.cuda
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_adam_in_one_launch_is_torchs_fused_adam(dtype, monkeypatch):
-    """The one Triton launch over every tensor (splatting/adam_triton.py, in the interpreter here)
-    against torch's fused kernel: each tensor with its own lr, one without a gradient (no update),
-    one empty, tensors of several programs, five steps (the bias corrections), a checkpoint's
-    round trip between them."""
+    """The one Triton launch over every tensor against torch's fused kernel on the CPU: each
+    tensor with its own lr, one without a gradient (no update), one empty, tensors of several
+    programs, five steps (the bias corrections), a checkpoint's round trip between them."""
     from splatting import devices
 
+    dev = _kernel_path(monkeypatch)
     shapes = {"means": (700, 3), "quats": (700, 4), "log_scales": (700, 3), "opacity_logits": (700,),
               "sh_dc": (700, 3), "sh_rest": (700, 0, 3)}
     lrs = {k: 1e-3 * (i + 1) for i, k in enumerate(shapes)}
     torch.manual_seed(1)
-    ours, ref = _Many(shapes, dtype), _Many(shapes, dtype)
+    ref = _Many(shapes, dtype)  # on the CPU, with torch's fused Adam
+    ours = _Many(shapes, dtype, dev)
     for k in shapes:
-        getattr(ref, k).data.copy_(getattr(ours, k).detach())
+        getattr(ours, k).data.copy_(getattr(ref, k).detach())
     opt, ref_opt = Adam(lrs), Adam(lrs)
     for step in range(5):
         for k in shapes:
-            grad = None if k == "quats" and step % 2 else torch.randn_like(getattr(ours, k))
-            getattr(ours, k).grad, getattr(ref, k).grad = grad, None if grad is None else grad.clone()
-        monkeypatch.setattr(devices, "KERNELS_ON_CPU", True)
+            grad = None if k == "quats" and step % 2 else torch.randn_like(getattr(ref, k))
+            getattr(ref, k).grad, getattr(ours, k).grad = grad, None if grad is None else grad.to(dev, copy=True)
         with DispatchCounter() as c:
             found = opt.step(ours)
-        monkeypatch.setattr(devices, "KERNELS_ON_CPU", False)
+        monkeypatch.setattr(devices, "KERNELS_ON_CPU", False)  # the reference: torch's path
         ref_opt.step(ref)
+        monkeypatch.setattr(devices, "KERNELS_ON_CPU", True)
         assert sum(c.kernels.values()) == 1 and c.syncs == 0, c.summary()
         if step:  # the first step also makes the moments
             assert c.device_ops == 2, c.summary()  # the flag's zeros, the launch
@@ -215,12 +230,13 @@ def test_adam_in_one_launch_is_torchs_fused_adam(dtype, monkeypatch):
         if step == 2:
             opt = Adam(lrs)
             opt.load_state_dict(ref_opt.state_dict())
+            opt.to(dev)
     # float32 scalars in the kernel: a float64 update carries float32's rounding (~1e-7 of a step)
     tol = dict(rtol=0, atol=1e-6) if dtype == torch.float32 else dict(rtol=0, atol=1e-9)
     for k in shapes:
-        assert torch.allclose(getattr(ours, k), getattr(ref, k), **tol), k
-        assert torch.allclose(opt.exp_avg[k], ref_opt.exp_avg[k], **tol), k
-        assert torch.allclose(opt.exp_avg_sq[k], ref_opt.exp_avg_sq[k], rtol=1e-6, atol=0), k
+        assert torch.allclose(getattr(ours, k).cpu(), getattr(ref, k), **tol), k
+        assert torch.allclose(opt.exp_avg[k].cpu(), ref_opt.exp_avg[k], **tol), k
+        assert torch.allclose(opt.exp_avg_sq[k].cpu(), ref_opt.exp_avg_sq[k], rtol=1e-6, atol=0), k
     assert opt.step_count == ref_opt.step_count == 5
 
 
