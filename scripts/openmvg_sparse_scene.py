@@ -104,7 +104,8 @@ def diagnose_run(scene, run: Path) -> list[dict]:
     background shows filled by the training panoramas' mean colour (render + (1 - alpha) * mean:
     what closing the holes with that colour would give), PSNR with the mean of the training
     panoramas' learned appearance transforms applied (the gauge), the alpha on dark pixels, and the
-    distance to the nearest training camera. Renders as the evaluate stage does (crops stitched from their
+    distance to the nearest training camera; and, where the run has a layout, where the model puts
+    the room against it (`layout_depth_ratios`, one figure per run). Renders as the evaluate stage does (crops stitched from their
     rig, against the background the model was trained against) at its resolution, and reads its ground
     truth."""
     import torch
@@ -198,7 +199,40 @@ def diagnose_run(scene, run: Path) -> list[dict]:
                 row[f"{band}_holes"] = float((r.alpha[m] < 0.5).mean())
                 row[f"{band}_ssim"] = M.ssim(image, gt, mask=m)  # the band's pixels, the rest zeroed
         rows.append(row)
-    return rows
+    depth = layout_depth_ratios(done, run, g, tdata, h, w)  # one figure per run: on every row
+    return [{**row, **depth} for row in rows]
+
+
+def layout_depth_ratios(done, run: Path, g, tdata, h: int, w: int) -> dict:
+    """Where the model puts the room, against the layout: per surface of the layout (ceiling, walls,
+    floor, as the layout labels each pixel), the median over the training views' pixels with alpha
+    > 0.5 of the rendered distance (depth / alpha) over the layout's, rendered from each training
+    view with a layout. 1 is on the layout; above it, behind. Empty without a layout stage."""
+    import torch
+
+    from evaluation.model_io import equirect_camera, render_pose
+    from pipeline.engine import read_output
+    from stages.align import layout_depth_map
+    from stages.evaluate import stitch_rig
+
+    layout = read_output(run, "layout")
+    if layout is None:  # no layout stage in this run: nothing to compare with
+        return {}
+    layouts = {lv.view: lv for lv in layout.views}
+    ratios: dict[str, list[np.ndarray]] = {}
+    for v in done.manifest.views:
+        lv = layouts.get(v.name)
+        if v.split != "train" or v.pose is None or lv is None:
+            continue
+        ld, label = layout_depth_map(np.asarray(lv.floor_polygon), lv.camera_height, lv.ceiling_distance, h, w)
+        r = render_pose(g, v.pose_matrix, equirect_camera(h, w), background=torch.zeros(3),
+                        rig=stitch_rig(tdata, (h, w)))
+        distance = np.asarray(r.depth) / np.maximum(np.asarray(r.alpha), 1e-6)
+        for name, code in (("ceiling", 2), ("walls", 0), ("floor", 1)):  # stages.align's labels
+            m = (label == code) & (np.asarray(r.alpha) > 0.5) & np.isfinite(ld)
+            ratios.setdefault(name, []).append(distance[m] / ld[m])
+    return {f"{name}_depth_ratio": float(np.median(np.concatenate(rs))) for name, rs in ratios.items()
+            if sum(x.size for x in rs)}
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -250,6 +284,9 @@ TABLE_KEYS = (
     "floor_ssim",
     "walls_holes",
     "floor_holes",
+    "ceiling_depth_ratio",
+    "walls_depth_ratio",
+    "floor_depth_ratio",
 )
 
 
@@ -290,7 +327,7 @@ def diagnose(scene_dir: Path, runs: list[Path], per_view: bool) -> None:
         cells = []
         for ss in by.values():
             vals = [x[k] for x in ss if x.get(k) is not None]
-            d = 3 if "alpha" in k or "holes" in k or "ssim" in k else 2
+            d = 3 if "alpha" in k or "holes" in k or "ssim" in k or "ratio" in k else 2
             cells.append(
                 "—"
                 if not vals
