@@ -198,11 +198,10 @@ def _one_launch_ok(items) -> bool:
     """Whether one Triton launch takes every (parameter, gradient, moments, lr) of `items`: where
     the training kernels run (splatting.devices.takes_kernels), all contiguous, of one floating
     dtype and device."""
-    from splatting import adam_triton
     from splatting.devices import takes_kernels
 
     p0 = items[0][0]
-    return len(items) <= adam_triton.SLOTS and takes_kernels(p0) and p0.dtype in (torch.float32, torch.float64) \
+    return takes_kernels(p0) and p0.dtype in (torch.float32, torch.float64) \
         and all(_fused_ok(p0, p, gr, m, v) for p, gr, m, v, _ in items)
 
 

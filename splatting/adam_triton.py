@@ -3,9 +3,10 @@
 own learning rate, and the finite check and the zeroing of non-finite gradients take one more
 operation per tensor on a GPU).
 
-The launch's programs are split over the tensors: tensor s takes ⌈numel_s / BLOCK⌉ consecutive
-programs. Per element, as torch's fused Adam: a gradient value that is not finite is taken as 0
-(and a flag set, by one atomic per program that met one), m ← β₁m + (1−β₁)g, v ← β₂v + (1−β₂)g²,
+The launch's programs are split over the tensors (passed as tuples, the loop over them unrolled):
+tensor s takes ⌈numel_s / BLOCK⌉ consecutive programs. Per element, as torch's fused Adam: a
+gradient value that is not finite is taken as 0 (and a flag set, by one atomic per program that
+met one), m ← β₁m + (1−β₁)g, v ← β₂v + (1−β₂)g²,
 p ← p − (lr/(1−β₁ᵗ))·m / (√v/√(1−β₂ᵗ) + ε). The scalars reach the kernel as float32 (Triton's
 type for a Python float), so a float64 parameter's update carries float32's relative rounding
 (~1e-7 of a step), which training never sees."""
@@ -24,8 +25,6 @@ try:
 except ImportError:
     triton = None
 
-#: the most tensors one launch takes (the Gaussians' PARAM_NAMES)
-SLOTS = 6
 _BLOCK = 1024
 
 
@@ -53,35 +52,23 @@ if triton is not None:
         tl.store(p + i, tl.load(p + i, mask=ok, other=0.0) - step_size * mm / denom, mask=ok)
 
     @triton.jit
-    def _adam(p0, g0, m0, v0, n0, s0, e0, p1, g1, m1, v1, n1, s1, e1, p2, g2, m2, v2, n2, s2, e2,
-              p3, g3, m3, v3, n3, s3, e3, p4, g4, m4, v4, n4, s4, e4, p5, g5, m5, v5, n5, s5,
-              found, beta1, one_minus_beta1, beta2, one_minus_beta2, eps, inv_sqrt_bc2, BLOCK: tl.constexpr):
-        # e_s: the first program past tensor s (so tensor s takes programs e_{s-1} .. e_s - 1)
+    def _adam(parameters, grads, exp_avgs, exp_avg_sqs, numels, step_sizes, ends, found, beta1, one_minus_beta1, beta2,
+              one_minus_beta2, eps, inv_sqrt_bc2, SLOTS: tl.constexpr, BLOCK: tl.constexpr):
+        # tensor s takes the programs from ends[s - 1] (0 for the first) to ends[s] - 1. (Not an
+        # argument named `params`: Triton's launcher binds the arguments into a local of that name)
         pid = tl.program_id(0)
-        if pid < e0:
-            _update(p0, g0, m0, v0, n0, s0, pid, found, beta1, one_minus_beta1, beta2, one_minus_beta2, eps,
-                    inv_sqrt_bc2, BLOCK)
-        elif pid < e1:
-            _update(p1, g1, m1, v1, n1, s1, pid - e0, found, beta1, one_minus_beta1, beta2, one_minus_beta2, eps,
-                    inv_sqrt_bc2, BLOCK)
-        elif pid < e2:
-            _update(p2, g2, m2, v2, n2, s2, pid - e1, found, beta1, one_minus_beta1, beta2, one_minus_beta2, eps,
-                    inv_sqrt_bc2, BLOCK)
-        elif pid < e3:
-            _update(p3, g3, m3, v3, n3, s3, pid - e2, found, beta1, one_minus_beta1, beta2, one_minus_beta2, eps,
-                    inv_sqrt_bc2, BLOCK)
-        elif pid < e4:
-            _update(p4, g4, m4, v4, n4, s4, pid - e3, found, beta1, one_minus_beta1, beta2, one_minus_beta2, eps,
-                    inv_sqrt_bc2, BLOCK)
-        else:
-            _update(p5, g5, m5, v5, n5, s5, pid - e4, found, beta1, one_minus_beta1, beta2, one_minus_beta2, eps,
-                    inv_sqrt_bc2, BLOCK)
+        start = 0
+        for s in tl.static_range(SLOTS):
+            if (pid >= start) & (pid < ends[s]):
+                _update(parameters[s], grads[s], exp_avgs[s], exp_avg_sqs[s], numels[s], step_sizes[s], pid - start,
+                        found, beta1, one_minus_beta1, beta2, one_minus_beta2, eps, inv_sqrt_bc2, BLOCK)
+            start = ends[s]
 
 
 def step_(tensors: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, float]], step: int,
           betas: tuple[float, float], eps: float, found: torch.Tensor) -> None:
     """One Adam update, in place, of each (parameter, gradient, exp_avg, exp_avg_sq, lr) in
-    `tensors` (1 to SLOTS of them, each of the four contiguous, of one dtype and device; `step` is
+    `tensors` (at least one; each of the four contiguous, of one dtype and device; `step` is
     this update's t ≥ 1); `found` (0-dim float32 on that device) is set to 1.0 when some gradient
     value was not finite (taken as 0), and left as it is otherwise."""
     kernel, grid, args, options = adam_launch(tensors, step, betas, eps, found)
@@ -90,22 +77,20 @@ def step_(tensors: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Te
 
 
 def adam_launch(tensors, step, betas, eps, found):
-    """(kernel, grid, args, options): spelled out once, for the optimiser and the compile check.
-    Unused slots repeat the last tensor with no programs."""
-    if not 1 <= len(tensors) <= SLOTS:
-        raise ValueError(f"one launch takes 1 to {SLOTS} tensors, not {len(tensors)}")
+    """(kernel, grid, args, options): spelled out once, for the optimiser and the compile check."""
+    if not tensors:
+        raise ValueError("one launch needs at least one tensor")
     b1, b2 = betas
     bc1, bc2 = 1.0 - b1**step, 1.0 - b2**step
-    args, end = [], 0
-    slots = list(tensors) + [tensors[-1][:4] + (0.0,)] * (SLOTS - len(tensors))
-    for s, (p, g, m, v, lr) in enumerate(slots):
-        n = _numel(p) if s < len(tensors) else 0
-        end += cdiv(n, _BLOCK)
-        args += [p, g, m, v, n, float(lr) / bc1]
-        if s < SLOTS - 1:
-            args.append(end)
-    args += [found, float(b1), 1.0 - float(b1), float(b2), 1.0 - float(b2), float(eps), 1.0 / math.sqrt(bc2)]
-    return _adam, (end,), tuple(args), dict(BLOCK=_BLOCK, num_warps=4)
+    params, grads, exp_avgs, exp_avg_sqs, lrs = zip(*tensors)
+    ends, end = [], 0
+    for p in params:
+        end += cdiv(_numel(p), _BLOCK)
+        ends.append(end)
+    args = (params, grads, exp_avgs, exp_avg_sqs, tuple(_numel(p) for p in params),
+            tuple(float(lr) / bc1 for lr in lrs), tuple(ends), found, float(b1), 1.0 - float(b1), float(b2),
+            1.0 - float(b2), float(eps), 1.0 / math.sqrt(bc2))
+    return _adam, (end,), args, dict(SLOTS=len(tensors), BLOCK=_BLOCK, num_warps=4)
 
 
 def _numel(t) -> int:
