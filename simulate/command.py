@@ -6,17 +6,18 @@ from pathlib import Path
 
 import typer
 
-from simulate.effects import EFFECTS
+from simulate.effects import EFFECTS, OPT_IN_EFFECTS
 from simulate.generate import PRESETS, SimulationResult, generate_scene
 
 PHASE_ORDER = (
-    "scene", "raycast", "furniture", "texture", "shading", "aa",
+    "scene", "raycast", "furniture", "fixtures", "texture", "shading", "aa",
     "tripod", "exposure", "noise", "layout", "write",
 )
 PHASE_HELP = {
     "scene": "room, doorways, lights, cameras",
     "raycast": "ground-truth pass: one ray per pixel centre (shell)",
     "furniture": "placing boxes + ray-box tests (all passes)",
+    "fixtures": "placing the lamps (their ray-box tests count under furniture)",
     "texture": "procedural albedo",
     "shading": "normals + Lambertian ceiling lights",
     "aa": "extra N x N sub-pixel rays (shell) + box filter",
@@ -59,8 +60,10 @@ def simulate_command(
     seed: int = typer.Option(0, "--seed", help="Random seed (the scene is deterministic for a seed)."),
     effects: str = typer.Option(
         "all", "--effects", help=f"Comma-separated effects from {', '.join(EFFECTS)}, or 'all' / 'none' "
-        "('all' for the demo preset: texture, furniture, shading, aa; 'all' never includes detail, the fine "
-        "non-repeating surface detail structure from motion needs: name it).",
+        "('all' for the demo preset: texture, furniture, shading, aa; 'all' never includes the opt-in "
+        f"{', '.join(sorted(OPT_IN_EFFECTS))}: detail is the fine non-repeating surface detail structure from "
+        "motion needs, plain-floor a floor without features, fixtures the lamps hanging under the ceiling; "
+        "name them).",
     ),
     aa_samples: int = typer.Option(2, "--aa-samples", help="Anti-aliasing: N x N samples per pixel."),
     with_layout: bool = typer.Option(

@@ -24,10 +24,11 @@ from shapely.prepared import prep
 from panogeom.equirect import column_longitudes, row_latitudes
 from simulate.geometry import FURNITURE_CAMERA_CLEARANCE, Box, Camera, World
 
-EFFECTS = ("texture", "furniture", "shading", "noise", "exposure", "tripod", "aa", "detail", "plain-floor")
+EFFECTS = ("texture", "furniture", "shading", "noise", "exposure", "tripod", "aa", "detail", "plain-floor",
+           "fixtures")
 #: Effects that `all` leaves out: they change what every existing scene looks like, so a scene
 #: gets them only by naming them.
-OPT_IN_EFFECTS = frozenset({"detail", "plain-floor"})
+OPT_IN_EFFECTS = frozenset({"detail", "plain-floor", "fixtures"})
 
 # Mean albedo of each material: also the flat colour used when `texture` is off.
 MATERIAL_RGB = {
@@ -189,6 +190,28 @@ def shading(points: np.ndarray, normals: np.ndarray, world: World) -> np.ndarray
             contrib *= (qx >= x0) & (qx <= x1) & (qz >= z0) & (qz <= z1)
         e += contrib
     return e
+
+
+# ----------------------------------------------------------------------------- fixtures
+
+FIXTURE_SIZE = (0.6, 0.08, 0.6)  # m: a lamp panel's width, thickness and depth
+#: emitted, brighter than the sensor's white: it saturates, as real lamps do
+FIXTURE_RGB = np.array([1.6, 1.55, 1.45])
+
+
+def fixtures(world: World) -> list[Box]:
+    """The lamps themselves, as boxes (kind "lamp"): a glowing panel of FIXTURE_SIZE hanging at
+    each light, its underside at the light's height (LIGHT_DROP below the ceiling), which the
+    renderer draws in emitted light (FIXTURE_RGB, `shading` does not reach it). Real rooms show
+    their lamps, fans and chandeliers as saturated objects off the ceiling: from another view
+    they land elsewhere on the ceiling, and a layout has no plane for them."""
+    w, t, d = FIXTURE_SIZE
+    out = []
+    for light in world.lights:
+        x, y, z = light.position
+        out.append(Box("lamp", np.array([x - w / 2, y - t, z - d / 2]), np.array([x + w / 2, y, z + d / 2]),
+                       np.array([0.9, 0.9, 0.9]), "plain"))
+    return out
 
 
 # ----------------------------------------------------------------------------- noise

@@ -253,6 +253,10 @@ def generate_scene(
         t0 = time.perf_counter()
         boxes = fxmod.furniture(world, cams, rngs["furniture"])
         timings["furniture"] = time.perf_counter() - t0
+    if "fixtures" in fx:
+        t0 = time.perf_counter()
+        boxes = boxes + fxmod.fixtures(world)
+        timings["fixtures"] = time.perf_counter() - t0
     world.boxes = boxes
     if "plain-floor" in fx:
         fxmod.plain_floor(world)

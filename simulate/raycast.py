@@ -274,7 +274,11 @@ def cast_grid(
                 lat_hi = np.arctan2(top_above, dmin)
             else:  # the top's farthest point is at most dmin + the footprint's diagonal away
                 lat_hi = np.arctan2(top_above, dmin + np.hypot(x1 - x0, z1 - z0))
-            lat_lo = -np.arctan2(h_cam - (-bx.hi[1]), dmin)
+            bottom_above = -bx.hi[1] - h_cam  # box bottom height above the camera (< 0 for furniture)
+            if bottom_above <= 0:
+                lat_lo = np.arctan2(bottom_above, dmin)
+            else:  # a hanging box (a lamp): its bottom's farthest point is the lowest one
+                lat_lo = np.arctan2(bottom_above, dmin + np.hypot(x1 - x0, z1 - z0))
             rows = np.where((lat >= lat_lo - 1e-9) & (lat <= lat_hi + 1e-9))[0]
             if len(rows) == 0:
                 continue

@@ -75,6 +75,8 @@ class _Materials:
                 coef[3 * s + a, 1, i1] = 1.0
         self.rgb = rgb
         self.bare = bare
+        self.emits = np.zeros(nsurf, bool)  # surfaces drawn in emitted light: the lamps
+        self.emits[box_id0(world):] = [bx.kind == "lamp" for bx in boxes]
         self.kind = kind
         self.coef = coef
         self.boxes = boxes
@@ -111,6 +113,8 @@ def _colour(
         nrm = normals(hits, dirs, world, m.boxes, origin)
         albedo = albedo * effects.shading(points, nrm, world)[:, None]
         timings["shading"] = timings.get("shading", 0.0) + time.perf_counter() - t0
+    if m.emits.any():  # the `fixtures` effect's lamps: emitted light, which the shading does not touch
+        albedo = np.where(m.emits[hits.sid][:, None], effects.FIXTURE_RGB.astype(albedo.dtype), albedo)
     return albedo
 
 

@@ -123,7 +123,8 @@ def test_demo_preset_learnable_layout(tmp_path):
 
 class _Counter:
     def __init__(self, monkeypatch):
-        names = ("texture", "furniture", "shading", "noise", "exposure", "tripod", "antialias", "plain_floor")
+        names = ("texture", "furniture", "shading", "noise", "exposure", "tripod", "antialias", "plain_floor",
+                 "fixtures")
         self.calls = {n: 0 for n in names}
         for name in self.calls:
             original = getattr(fx, name)
@@ -149,6 +150,7 @@ class _Counter:
         ("tripod", {"tripod"}),
         ("aa", {"antialias"}),
         ("plain-floor", {"plain_floor"}),
+        ("fixtures", {"fixtures"}),
         ("all", {"texture", "furniture", "shading", "noise", "exposure", "tripod", "antialias"}),
     ],
 )
@@ -160,9 +162,11 @@ def test_effects_off_are_never_evaluated(tmp_path, monkeypatch, effects, expecte
     called = {k for k, v in counter.calls.items() if v > 0}
     assert called == expected
     # Only the effects that ran show up in the profile.
-    timed = set(res.timings) & {"texture", "furniture", "shading", "noise", "exposure", "tripod", "aa"}
+    timed = set(res.timings) & {"texture", "furniture", "shading", "noise", "exposure", "tripod", "aa", "fixtures"}
     # (plain-floor only marks the floor plain: nothing to time)
-    assert timed == {("aa" if e == "antialias" else e) for e in expected if e != "plain_floor"}
+    # (the lamps of `fixtures` are boxes: their ray-box tests are timed with the furniture's)
+    assert timed == {("aa" if e == "antialias" else e) for e in expected if e != "plain_floor"} | (
+        {"furniture"} if "fixtures" in expected else set())
 
 
 def test_effects_do_change_the_image(tmp_path):
@@ -177,6 +181,8 @@ def test_effects_do_change_the_image(tmp_path):
                 tmp_path / "texture-only", preset="cuboid", views=1, test_views=0, height=32, seed=2,
                 effects="texture").out_dir / "images" / "train_00.png")).astype(int)
             e, reference = "texture,plain-floor", base_img
+        elif e == "fixtures":  # a disc a pixel wide at this size: test_fixtures_... checks it
+            continue
         else:
             reference = img0
         r = simulate.generate_scene(
@@ -190,6 +196,29 @@ def test_effects_do_change_the_image(tmp_path):
         assert a == b
 
 
+def test_fixtures_are_saturated_lamps_hanging_where_the_lights_are(tmp_path):
+    import cv2
+
+    def image(effects):
+        r = simulate.generate_scene(tmp_path / effects, preset="cuboid", views=1, test_views=0, height=64, seed=2,
+                                    effects=effects)
+        return cv2.imread(str(r.out_dir / "images" / "train_00.png")).astype(int), r.out_dir
+
+    shaded, _ = image("shading")
+    lit, out = image("shading,fixtures")
+    changed = np.abs(lit - shaded).max(-1) > 0
+    rows, cols = np.nonzero(changed)
+    assert changed.sum() >= 10 and rows.max() < 32  # above the horizon: on the ceiling
+    assert (lit[changed] >= 250).all()  # saturated, as a lamp is
+    # in the direction of the cuboid's one light (the lamp's underside)
+    from panogeom.equirect import angles_to_pixel, dirs_to_angles
+
+    lamp = np.array(json.loads((out / "gt" / "floor_plan.json").read_text())["lights"][0]["position"])
+    pose = np.array(json.loads((out / "scene.json").read_text())["views"][0]["pose"])  # camera to world
+    col, row = angles_to_pixel(*dirs_to_angles(pose[:3, :3].T @ (lamp - pose[:3, 3])), 64, 128)
+    assert abs(((cols.mean() - col + 64) % 128) - 64) < 3 and abs(rows.mean() - row) < 4
+
+
 def test_noise_free_scene_is_flat_per_material(tmp_path):
     """Without texture/shading/noise/aa each surface has one colour: exactly the material table."""
     import cv2
@@ -201,7 +230,7 @@ def test_noise_free_scene_is_flat_per_material(tmp_path):
 
 
 def test_parse_effects():
-    assert parse_effects("all") == set(simulate.EFFECTS) - {"detail", "plain-floor"}  # opt-in effects
+    assert parse_effects("all") == set(simulate.EFFECTS) - {"detail", "plain-floor", "fixtures"}  # opt-in effects
     assert parse_effects("none") == set()
     assert parse_effects("texture, aa") == {"texture", "aa"}
     assert parse_effects({"noise"}) == {"noise"}
