@@ -63,10 +63,11 @@ class Adam:
         some was (a tensor: reading it would wait for a GPU)."""
         self._init_state(g)
         self.step_count += 1
-        items = [(getattr(g, k), lr) for k, lr in self.lrs.items()]
-        # as torch.optim.Adam: no gradient, no update (e.g. SH bands not yet in use)
-        items = [(p, p.grad, self.exp_avg[k], self.exp_avg_sq[k], lr)
-                 for k, (p, lr) in zip(self.lrs, items) if p.grad is not None]
+        items = []  # (parameter, gradient, moments, lr)
+        for k, lr in self.lrs.items():
+            p = getattr(g, k)
+            if p.grad is not None:  # as torch.optim.Adam: no gradient, no update (SH bands not yet in use)
+                items.append((p, p.grad, self.exp_avg[k], self.exp_avg_sq[k], lr))
         if not items:
             return torch.zeros((), dtype=torch.float32)
         found = torch.zeros((), dtype=torch.float32, device=items[0][0].device)
