@@ -18,18 +18,10 @@ import math
 import torch
 
 from .devices import cdiv
-
-try:
-    import triton
-    import triton.language as tl
-except ImportError:
-    triton = None
+from .optional_triton import available as available
+from .optional_triton import tl, triton
 
 _BLOCK = 1024
-
-
-def available() -> bool:
-    return triton is not None
 
 
 if triton is not None:

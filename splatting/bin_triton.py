@@ -30,13 +30,8 @@ import warnings
 import torch
 
 from .devices import cdiv, device_key
+from .optional_triton import tl, triton  # raster_triton reports a missing triton
 from .project_triton import INTS
-
-try:
-    import triton
-    import triton.language as tl
-except ImportError:  # raster_triton reports it
-    triton = None
 
 if triton is not None:
 

@@ -27,12 +27,8 @@ import math
 import torch
 
 from .devices import cdiv
-
-try:
-    import triton
-    import triton.language as tl
-except ImportError:  # the caller checks `available()`
-    triton = None
+from .optional_triton import available as available
+from .optional_triton import tl, triton
 
 C1, C2 = 0.01**2, 0.03**2
 WINDOW, SIGMA = 11, 1.5
@@ -41,10 +37,6 @@ _FINAL_BLOCK = 512  # six partial sums a program: 4 each a thread keeps the redu
 #: per-program partial sums of _ssim_v (Σ u·S, Σ u·|p − g|, Σ u, Σ m·e², Σ m, Σ e²) and _finalize's
 #: outputs (loss, L1, SSIM, n_L1, n_SSIM, PSNR)
 _NUM_PARTIALS = _NUM_TOTALS = 6
-
-
-def available() -> bool:
-    return triton is not None
 
 
 if triton is not None:

@@ -27,13 +27,8 @@ import torch
 
 from .cameras import EquirectCamera
 from .devices import cdiv
+from .optional_triton import tl, triton  # raster_triton reports a missing triton
 from .project import ALPHA_MIN, DEPTH_KEY_SHIFT, PACK, TAU_MAX, project
-
-try:
-    import triton
-    import triton.language as tl
-except ImportError:  # raster_triton reports it
-    triton = None
 
 ANGLE_MARGIN = 2e-6  # radians added to every angular bound of the box (covers the atan2 polynomial)
 INTS = 7  # int32 columns per Gaussian: box (row0, row1, col0, ncols), tiles covered, radius, depth key

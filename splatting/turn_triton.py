@@ -17,22 +17,15 @@ import math
 import torch
 
 from .devices import cdiv
+from .optional_triton import available as available
+from .optional_triton import tl, triton
 
-try:
-    import triton
-    import triton.language as tl
-
+if triton is not None:
     # the projection's polynomial atan2 (|error| <= 1e-8 rad: 3e-6 pixel at W = 2048); libdevice's
     # does not run in the interpreter, which CI checks this kernel with
     from .project_triton import _atan2
-except ImportError:
-    triton = None
 
 _BLOCK = 256
-
-
-def available() -> bool:
-    return triton is not None
 
 
 if triton is not None:
