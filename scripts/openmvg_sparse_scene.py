@@ -227,9 +227,10 @@ def layout_depth_ratios(done, run: Path, g, tdata, h: int, w: int) -> dict:
         ld, label = layout_depth_map(np.asarray(lv.floor_polygon), lv.camera_height, lv.ceiling_distance, h, w)
         r = render_pose(g, v.pose_matrix, equirect_camera(h, w), background=torch.zeros(3),
                         rig=stitch_rig(tdata, (h, w)))
-        distance = np.asarray(r.depth) / np.maximum(np.asarray(r.alpha), 1e-6)
+        alpha = np.asarray(r.alpha)
+        distance = np.asarray(r.depth) / np.maximum(alpha, 1e-6)
         for name, code in (("ceiling", 2), ("walls", 0), ("floor", 1)):  # stages.align's labels
-            m = (label == code) & (np.asarray(r.alpha) > 0.5) & np.isfinite(ld)
+            m = (label == code) & (alpha > 0.5) & np.isfinite(ld)
             ratios.setdefault(name, []).append(distance[m] / ld[m])
     return {f"{name}_depth_ratio": float(np.median(np.concatenate(rs))) for name, rs in ratios.items()
             if sum(x.size for x in rs)}

@@ -61,9 +61,7 @@ def simulate_command(
     effects: str = typer.Option(
         "all", "--effects", help=f"Comma-separated effects from {', '.join(EFFECTS)}, or 'all' / 'none' "
         "('all' for the demo preset: texture, furniture, shading, aa; 'all' never includes the opt-in "
-        f"{', '.join(sorted(OPT_IN_EFFECTS))}: detail is the fine non-repeating surface detail structure from "
-        "motion needs, plain-floor a floor without features, fixtures the lamps hanging under the ceiling; "
-        "name them).",
+        f"{'; '.join(f'{k}: {v}' for k, v in OPT_IN_EFFECTS.items())}; name them).",
     ),
     aa_samples: int = typer.Option(2, "--aa-samples", help="Anti-aliasing: N x N samples per pixel."),
     with_layout: bool = typer.Option(

@@ -26,9 +26,13 @@ from simulate.geometry import FURNITURE_CAMERA_CLEARANCE, Box, Camera, World
 
 EFFECTS = ("texture", "furniture", "shading", "noise", "exposure", "tripod", "aa", "detail", "plain-floor",
            "fixtures")
-#: Effects that `all` leaves out: they change what every existing scene looks like, so a scene
-#: gets them only by naming them.
-OPT_IN_EFFECTS = frozenset({"detail", "plain-floor", "fixtures"})
+#: Effects that `all` leaves out, with what each draws: they change what every existing scene looks
+#: like, so a scene gets them only by naming them.
+OPT_IN_EFFECTS = {
+    "detail": "the fine non-repeating surface detail structure from motion needs",
+    "plain-floor": "a floor without features",
+    "fixtures": "the lamps hanging under the ceiling",
+}
 
 # Mean albedo of each material: also the flat colour used when `texture` is off.
 MATERIAL_RGB = {

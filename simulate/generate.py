@@ -21,7 +21,7 @@ PRESETS = PRESET_NAMES
 EFFECTS = fxmod.EFFECTS
 # What "all" means for each preset: the demo is noise-free and capture-effect-free (it must be
 # learnable, and its figures stay as they are); the others get every effect.
-PRESET_ALL_EFFECTS = {p: frozenset(EFFECTS) - fxmod.OPT_IN_EFFECTS for p in PRESETS}
+PRESET_ALL_EFFECTS = {p: frozenset(EFFECTS) - frozenset(fxmod.OPT_IN_EFFECTS) for p in PRESETS}
 PRESET_ALL_EFFECTS["demo"] = frozenset({"texture", "furniture", "shading", "aa"})
 
 MAX_HEIGHT = 4096
