@@ -321,7 +321,7 @@ def settings_without_effect(run_dir: Path, scene=None) -> dict[tuple[str, str], 
                     "one training panorama: a per-panorama colour transform has no other panorama to differ "
                     "from, so it only trades off against the model's own colours")
         else:
-            for k in ("lambda_appearance", "lambda_appearance_gauge", "lr_appearance"):
+            for k in ("lambda_appearance", "pin_appearance_mean", "lr_appearance"):
                 if k in p and not _same(p[k], _default("train", k)):
                     out[("train", k)] = "appearance is off"
         projection = td.get("projection", p.get("projection"))

@@ -49,11 +49,6 @@ class LossConfig:
     coverage_jitter: float = 0.05
     #: weight pulling the appearance transforms to the identity
     lambda_appearance: float = 0.01
-    #: weight of the penalty on the mean transform's distance from the identity (Appearance.gauge):
-    #: the transforms and the colours share a free gain and offset, and an unpinned mean drifts into
-    #: a colour cast of the held-out renders (docs/training.md, issue 39: +0.5 to +1.3 dB on real
-    #: captures, neutral on the simulated sparse case)
-    lambda_appearance_gauge: float = 10.0
 
 
 @dataclass
@@ -137,6 +132,11 @@ class AppearanceConfig:
     """A learned colour gain and bias per training panorama (gaussians/appearance.py)."""
 
     enabled: bool = False
+    #: hold the mean transform over the panoramas at the identity exactly (Appearance.pin_mean_):
+    #: the transforms and the colours share a free gain and offset, and an unpinned mean drifts into
+    #: a colour cast of the held-out renders (docs/training.md, issue 39: +0.5 to +1.3 dB on real
+    #: captures, neutral on the simulated sparse case)
+    pin_appearance_mean: bool = True
 
 
 #: Flat names whose field in their group is named otherwise: flat name -> field

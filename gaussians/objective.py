@@ -2,7 +2,7 @@
 
     loss = λ1·L1 + λ2·D-SSIM                   (on the panorama, or on its eight perspective crops)
          + λ_scale · mean scale / extent        (the official 360-GS code's floater penalty)
-         + λ_app · appearance regulariser (+ its gauge)
+         + λ_app · appearance regulariser         (its mean held at the identity by projection)
          + λ_cov · mean(1 − alpha) from a point between two training cameras
          + λ3 · L_layout                         (layout Gaussians moving off their planes)
 
@@ -73,8 +73,6 @@ class TrainingObjective:
             terms.loss = terms.loss + cfg.loss.lambda_scale * torch.exp(g.log_scales).mean() / cfg.extent
         if appearance is not None and cfg.loss.lambda_appearance > 0:
             terms.loss = terms.loss + cfg.loss.lambda_appearance * appearance.regulariser()
-        if appearance is not None and cfg.loss.lambda_appearance_gauge > 0:
-            terms.loss = terms.loss + cfg.loss.lambda_appearance_gauge * appearance.gauge()
         if cfg.loss.lambda_coverage > 0:
             terms.coverage = self._coverage_loss(drawn, background, generator)
             terms.loss = terms.loss + cfg.loss.lambda_coverage * terms.coverage

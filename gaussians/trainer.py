@@ -208,7 +208,8 @@ class Trainer:
         if not self.cfg.appearance.enabled:
             return None
         names = list(dict.fromkeys(Appearance.panorama_of(v.name) for v in self.views))
-        return Appearance(names, self.cfg.optim.lr_appearance, self.g.means.dtype, device=self.device)
+        return Appearance(names, self.cfg.optim.lr_appearance, self.g.means.dtype, device=self.device,
+                          pin_mean=self.cfg.appearance.pin_appearance_mean)
 
     def _as_trained(self, view: TrainView, image: torch.Tensor) -> torch.Tensor:
         """A render as the loss sees it: through the view's appearance transform, when on."""

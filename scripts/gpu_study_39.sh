@@ -19,7 +19,7 @@
 # then here: python scripts/study_360.py SCENE --out $OUT/<scene>.jsonl --table
 # Switches (run): SEEDS (default 3); VARIANTS (default "crops 360", with the train stage's default
 # appearance gauge: study_360.py variants, e.g. add "360/rbg:random_background=true", the open candidate
-# of docs/training.md, or "360/nogauge:lambda_appearance_gauge=0"); DEVICE=cpu and STUDY_SETS="--set train.iterations=20
+# of docs/training.md, or "360/nogauge:pin_appearance_mean=false"); DEVICE=cpu and STUDY_SETS="--set train.iterations=20
 # --set train.height=32" try the run half without a GPU, in miniature.
 # The prep must be run at the commit the GPU runs: the upstream stages' cache keys include
 # their code.

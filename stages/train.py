@@ -222,10 +222,11 @@ class Params(StageParams):
     appearance: bool = Field(default=_TRAINER["appearance"], description="A learned colour gain and bias per training panorama "
                                                        "(exposure, white balance), applied while training only.")
     lambda_appearance: float = Field(default=_TRAINER["lambda_appearance"], ge=0, description="Weight pulling the transforms to identity.")
-    lambda_appearance_gauge: float = Field(
-        default=_TRAINER["lambda_appearance_gauge"], ge=0, description="Weight pinning the mean transform over the panoramas to the identity "
-        "(the model's colours then match the panoramas' mean exposure, which held-out views are rendered at).")
     lr_appearance: float = Field(default=_TRAINER["lr_appearance"], gt=0, description="Adam learning rate of the transforms.")
+    pin_appearance_mean: bool = Field(
+        default=_TRAINER["pin_appearance_mean"], description="Hold the mean transform over the panoramas at the identity exactly "
+        "(a projection after each step): the model's colours then match the panoramas' mean exposure, which "
+        "held-out views are rendered at.")
 
     @field_validator("background", mode="before")
     @classmethod

@@ -26,6 +26,32 @@ def test_identity_at_the_start_and_faces_share_their_panorama():
     assert torch.equal(app.apply("a/nz", img), img)
 
 
+def test_pinned_mean_stays_the_identity_exactly():
+    """The projection after each step: whatever the gradients, the transforms' mean (per channel,
+    over the panoramas) is the identity, each panorama's offset from it is what Adam made; one
+    panorama alone is all gauge, so it stays the identity."""
+    torch.manual_seed(0)
+    app = Appearance(["a", "b", "c"], lr=0.05, pin_mean=True)
+    free = Appearance(["a", "b", "c"], lr=0.05)
+    img = torch.rand(4, 8, 3)
+    targets = {"a": img * 0.6, "b": img * 1.1 + 0.05, "c": img}
+    for _ in range(60):
+        for t in (app, free):
+            sum(((t.apply(n, img) - y) ** 2).mean() for n, y in targets.items()).backward()
+            t.step()
+    assert torch.allclose(app.gain.detach().mean(0), torch.ones(3), atol=1e-6)
+    assert torch.allclose(app.bias.detach().mean(0), torch.zeros(3), atol=1e-6)
+    # the projection removes the common part only: the differences between panoramas are Adam's
+    gain_a_vs_c = (app.gain[0] - app.gain[2]).detach()
+    assert bool((gain_a_vs_c < -0.15).all())
+    assert float((free.gain.detach().mean(0) - 1).abs().max()) > 1e-2  # unpinned, the mean drifts
+    alone = Appearance(["a"], lr=0.05, pin_mean=True)
+    for _ in range(5):
+        ((alone.apply("a", img) - img * 0.5) ** 2).mean().backward()
+        alone.step()
+    assert torch.equal(alone.gain.detach(), torch.ones(1, 3)) and torch.equal(alone.bias.detach(), torch.zeros(1, 3))
+
+
 def test_gradient_reaches_gain_and_bias():
     app = Appearance(["a"])
     img, target = torch.rand(4, 8, 3), torch.rand(4, 8, 3)

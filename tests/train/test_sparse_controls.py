@@ -162,8 +162,9 @@ def test_coverage_loss_closes_a_hole_no_training_view_shows():
 
 def test_appearance_gauge_pins_the_mean_transform():
     """Two panoramas of one grey, one 1.25× the other: transforms and colours can split the
-    difference any way (a free gauge); with the gauge penalty the mean gain ends near 1, so the
-    model's colour is the mean exposure, 0.5 × (1 + 1.25) / 2."""
+    difference any way (a free gauge); pinned by default, the mean gain is exactly 1, so the
+    model's colour is the mean exposure, 0.5 × (1 + 1.25) / 2, and the transforms carry each
+    panorama's exposure."""
     import splatting
     from gaussians.model import Gaussians
     from gaussians.trainer import TrainView
@@ -173,14 +174,18 @@ def test_appearance_gauge_pins_the_mean_transform():
     views = [TrainView(f"v{i}", torch.full((8, 16, 3), 0.5 * k), torch.eye(4), splatting.EquirectCamera(8, 16))
              for i, k in enumerate((1.0, 1.25))]
     cfg = small_config(iterations=100, extent=1.0, densify_until=0, lambda_layout=0.0, lambda_dssim=0.0, lr_sh_dc=0.02,
-                       appearance=True, lr_appearance=0.02, lambda_appearance=0.0, lambda_appearance_gauge=10.0, log_every=50)
+                       appearance=True, lr_appearance=0.02, lambda_appearance=0.0, log_every=50)
     tr = Trainer(g, views, cfg)
     tr.train()
-    assert float(tr.appearance.gauge().detach()) < 1e-3
-    assert float(tr.appearance.gain.detach().mean()) == pytest.approx(1.0, abs=0.02)
+    gain = tr.appearance.gain.detach()
+    assert float(tr.appearance.gauge().detach()) < 1e-12
+    assert float(gain.mean()) == pytest.approx(1.0, abs=1e-6)
     with torch.no_grad():
         colour = tr.g.sh_dc[0, 0].mean().item() * 0.28209479177387814 + 0.5
     assert colour == pytest.approx(0.5 * 1.125, abs=0.02)
+    # and the transforms carry each panorama's exposure
+    seen = [tr.appearance.apply(f"v{i}", torch.full((1, 1, 3), colour)).mean().item() for i in range(2)]
+    assert seen == pytest.approx([0.5, 0.625], abs=0.02)
 
 
 def test_mip_filter_opacity_reset_caps_the_drawn_opacity():
