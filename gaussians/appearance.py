@@ -13,6 +13,8 @@ import math
 
 import torch
 
+from gaussians.config import AppearanceConfig, OptimConfig
+
 __all__ = ["Appearance"]
 
 
@@ -20,8 +22,9 @@ class Appearance:
     """out = gain[view] * rgb + bias[view], per channel; `names` are the panoramas (cube faces
     share their panorama's transform: a face "pano/px" uses "pano")."""
 
-    def __init__(self, names: list[str], lr: float = 1e-3, dtype: torch.dtype = torch.float32, device="cpu",
-                 pin_mean: bool = False):
+    # the defaults are the trainer's (gaussians/config.py), written there once
+    def __init__(self, names: list[str], lr: float = OptimConfig.lr_appearance, dtype: torch.dtype = torch.float32,
+                 device="cpu", pin_mean: bool = AppearanceConfig.pin_appearance_mean):
         if len(set(names)) != len(names) or not names:
             raise ValueError("appearance needs distinct panorama names")
         self.names = list(names)
