@@ -29,11 +29,12 @@ __all__ = ["LayoutRows", "layout_loss_rows"]
 class _LayoutLoss(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means: torch.Tensor, idx: torch.Tensor, u0: torch.Tensor, nhat_k: torch.Tensor,
-                eps: torch.Tensor, deadzone: float, eps_value: float) -> torch.Tensor:
-        """`nhat_k`: the unit normals divided by K (the mean's 1/K folded in once); `eps` as a
-        tensor on the means' device (torch) and as a number (`eps_value`, the kernel: no host read)."""
+                eps_deadzone: torch.Tensor, deadzone: float) -> torch.Tensor:
+        """`nhat_k`: the unit normals divided by K (the mean's 1/K folded in once); `eps_deadzone`:
+        (eps, deadzone) as a tensor on the means' device (no host read), `deadzone` also as a number
+        (the torch path's branch)."""
         if idx.shape[0] and _on_kernel(means, u0, nhat_k):
-            value, full = layout_triton.layout_value_and_gradient(means, idx, u0, nhat_k, eps_value, deadzone)
+            value, full = layout_triton.layout_value_and_gradient(means, idx, u0, nhat_k, eps_deadzone)
             ctx.save_for_backward(full)
             return value
         full = torch.zeros_like(means, memory_format=torch.contiguous_format)
@@ -42,7 +43,7 @@ class _LayoutLoss(torch.autograd.Function):
             return means.new_zeros(())
         d = means.index_select(0, idx) - u0
         length = torch.linalg.vector_norm(d, dim=-1, keepdim=True)
-        r = torch.hypot(length, eps)  # [K,1]
+        r = torch.hypot(length, eps_deadzone[0])  # [K,1]
         e = d / r
         c = (e * nhat_k).sum(-1, keepdim=True)  # the cosines / K, [K,1]
         if deadzone > 0:  # a Python float: no branch on device values
@@ -58,7 +59,7 @@ class _LayoutLoss(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad: torch.Tensor):
         (full,) = ctx.saved_tensors
-        return full * grad, None, None, None, None, None, None
+        return full * grad, None, None, None, None, None
 
 
 def _on_kernel(means: torch.Tensor, u0: torch.Tensor, nhat_k: torch.Tensor) -> bool:
@@ -87,12 +88,11 @@ class LayoutRows:
         self.u0 = u0
         nn = torch.linalg.vector_norm(normals, dim=-1, keepdim=True).clamp_min(1e-12)
         self.nhat_k = normals / (nn * max(int(idx.shape[0]), 1))
-        self.eps = torch.full((), float(eps), dtype=u0.dtype, device=u0.device)
-        self.eps_value = float(eps)
+        self.eps_deadzone = torch.tensor([float(eps), self.deadzone], dtype=u0.dtype, device=u0.device)
 
     def __len__(self) -> int:
         return int(self.idx.shape[0])
 
     def loss(self, means: torch.Tensor) -> torch.Tensor:
         """L_layout of means[idx] (a 0-dim tensor; its gradient reaches `means` directly)."""
-        return _LayoutLoss.apply(means, self.idx, self.u0, self.nhat_k, self.eps, self.deadzone, self.eps_value)
+        return _LayoutLoss.apply(means, self.idx, self.u0, self.nhat_k, self.eps_deadzone, self.deadzone)

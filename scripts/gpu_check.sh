@@ -45,6 +45,20 @@ OUT=${OUT:-docs/gpu_check}
 mkdir -p "$OUT"
 "$PY" -c "import sys, torch; sys.exit(0 if torch.cuda.is_available() else 'gpu-check: torch sees no CUDA device')"
 "$PY" -c "import torch; print(torch.cuda.get_device_name(), 'torch', torch.__version__)" | tee "$OUT/device.txt"
+# how this Triton types a float argument (float32 in 3.8's binder; splatting/optional_triton.py)
+"$PY" - <<'FLOATS' 2>&1 | tee "$OUT/triton_floats.txt" || true
+import torch
+import triton
+from triton.runtime.jit import create_function_from_signature
+
+from splatting import adam_triton
+
+t = torch.zeros(4, dtype=torch.float64, device="cuda")
+fn, _grid, args, options = adam_triton.adam_launch([(t, t, t, t, 1e-3)], 1, (0.9, 0.999), 1e-15, t)
+backend = triton.compiler.make_backend(triton.runtime.driver.active.get_current_target())
+spec = create_function_from_signature(fn.signature, fn.params, backend)(*args, **options)[1]
+print("triton", triton.__version__, "binds Adam's float arguments as", {s[0] for s, a in zip(spec, args) if isinstance(a, float)})
+FLOATS
 status=0
 if [ "${BENCH_KERNELS:-1}" != 0 ]; then
     pano bench kernels --out "$OUT" 2>&1 | tee "$OUT/bench_kernels.log" || status=1

@@ -8,8 +8,9 @@ tensor s takes ⌈numel_s / BLOCK⌉ consecutive programs. Per element, as torch
 gradient value that is not finite is taken as 0 (and a flag set, by one atomic per program that
 met one), m ← β₁m + (1−β₁)g, v ← β₂v + (1−β₂)g²,
 p ← p − (lr/(1−β₁ᵗ))·m / (√v/√(1−β₂ᵗ) + ε). The scalars reach the kernel as float32 (Triton's
-type for a Python float), so a float64 parameter's update carries float32's relative rounding
-(~1e-7 of a step), which training never sees."""
+type for a Python float; `launch_float` rounds them so for the interpreter too), so a float64
+parameter's moments carry float32's rounding of β (~2e-8 of their value) and its update ~1e-7 of
+a step, which training never sees."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ import torch
 
 from .devices import cdiv
 from .optional_triton import available as available
-from .optional_triton import tl, triton
+from .optional_triton import launch_float, tl, triton
 
 _BLOCK = 1024
 
@@ -44,17 +45,21 @@ if triton is not None:
         tl.store(p + i, tl.load(p + i, mask=ok, other=0.0) - step_size * mm / denom, mask=ok)
 
     @triton.jit
-    def _adam(parameters, grads, exp_avgs, exp_avg_sqs, numels, step_sizes, ends, found, beta1, one_minus_beta1, beta2,
+    def _adam(parameters, grads, exp_avgs, exp_avg_sqs, numels, step_sizes, found, beta1, one_minus_beta1, beta2,
               one_minus_beta2, eps, inv_sqrt_bc2, SLOTS: tl.constexpr, BLOCK: tl.constexpr):
-        # tensor s takes the programs from ends[s - 1] (0 for the first) to ends[s] - 1. (Not an
-        # argument named `params`: Triton's launcher binds the arguments into a local of that name)
+        # tensor s takes the programs from `start` (the sum of the earlier tensors' ⌈numel / BLOCK⌉)
+        # to `end` − 1, worked out here: passed in, these boundaries would be specialised by Triton
+        # (`% 16`, `== 1`) into a new compiled variant at most densifications (13 in 40 sizes), where
+        # the numels give at most 3 (N % 16). (Not an argument named `params`: Triton's launcher
+        # binds the arguments into a local of that name)
         pid = tl.program_id(0)
         start = 0
         for s in tl.static_range(SLOTS):
-            if (pid >= start) & (pid < ends[s]):
+            end = start + tl.cdiv(numels[s], BLOCK)
+            if (pid >= start) & (pid < end):
                 _update(parameters[s], grads[s], exp_avgs[s], exp_avg_sqs[s], numels[s], step_sizes[s], pid - start,
                         found, beta1, one_minus_beta1, beta2, one_minus_beta2, eps, inv_sqrt_bc2, BLOCK)
-            start = ends[s]
+            start = end
 
 
 def step_(tensors: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, float]], step: int,
@@ -75,14 +80,11 @@ def adam_launch(tensors, step, betas, eps, found):
     b1, b2 = betas
     bc1, bc2 = 1.0 - b1**step, 1.0 - b2**step
     params, grads, exp_avgs, exp_avg_sqs, lrs = zip(*tensors)
-    ends, end = [], 0
-    for p in params:
-        end += cdiv(_numel(p), _BLOCK)
-        ends.append(end)
+    programs = sum(cdiv(_numel(p), _BLOCK) for p in params)
     args = (params, grads, exp_avgs, exp_avg_sqs, tuple(_numel(p) for p in params),
-            tuple(float(lr) / bc1 for lr in lrs), tuple(ends), found, float(b1), 1.0 - float(b1), float(b2),
-            1.0 - float(b2), float(eps), 1.0 / math.sqrt(bc2))
-    return _adam, (end,), args, dict(SLOTS=len(tensors), BLOCK=_BLOCK, num_warps=4)
+            tuple(launch_float(float(lr) / bc1) for lr in lrs), found,
+            *map(launch_float, (b1, 1.0 - float(b1), b2, 1.0 - float(b2), eps, 1.0 / math.sqrt(bc2))))
+    return _adam, (programs,), args, dict(SLOTS=len(tensors), BLOCK=_BLOCK, num_warps=4)
 
 
 def _numel(t) -> int:

@@ -9,7 +9,7 @@ import torch
 
 from .devices import cdiv
 from .optional_triton import available as available
-from .optional_triton import tl, triton
+from .optional_triton import launch_float, tl, triton
 
 _BLOCK = 1024
 
@@ -18,7 +18,7 @@ if triton is not None:
 
     @triton.jit
     def _add(grad2d, visible, radii, grad_accum, count, max_radius, n, s_grad, s_vis, s_rad, scale, pixel_scale,
-             BLOCK: tl.constexpr):
+             BLOCK: tl.constexpr, FLOAT32: tl.constexpr):
         i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
         ok = i < n
         gx = tl.load(grad2d + i * s_grad, mask=ok, other=0.0).to(grad_accum.dtype.element_ty)
@@ -32,7 +32,10 @@ if triton is not None:
         c = tl.load(count + i, mask=ok, other=0.0)
         tl.store(count + i, c + vis.to(c.dtype), mask=ok)
         mr = tl.load(max_radius + i, mask=ok, other=0.0)
-        rr = r.to(mr.dtype) / pixel_scale
+        if FLOAT32:  # torch's rounding: a float32 `/` is approximate on a GPU (float64's is exact)
+            rr = tl.math.div_rn(r.to(mr.dtype), pixel_scale + tl.zeros_like(mr))
+        else:
+            rr = r.to(mr.dtype) / pixel_scale
         tl.store(max_radius + i, tl.where(vis, tl.maximum(mr, rr), mr), mask=ok)
 
 
@@ -54,5 +57,6 @@ def add_(grad2d: torch.Tensor, visible: torch.Tensor, radii: torch.Tensor, grad_
 def add_launch(grad2d, visible, radii, grad_accum, count, max_radius, n, s_grad, s_vis, s_rad, scale, pixel_scale):
     """(kernel, grid, args, options): spelled out once, for `add_` and the compile check."""
     return (_add, (cdiv(n, _BLOCK),),
-            (grad2d, visible, radii, grad_accum, count, max_radius, n, s_grad, s_vis, s_rad, float(scale),
-             float(pixel_scale)), dict(BLOCK=_BLOCK, num_warps=4))
+            (grad2d, visible, radii, grad_accum, count, max_radius, n, s_grad, s_vis, s_rad, launch_float(scale),
+             launch_float(pixel_scale)),
+            dict(BLOCK=_BLOCK, num_warps=4, FLOAT32=max_radius.dtype == torch.float32))

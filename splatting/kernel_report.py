@@ -48,6 +48,7 @@ class KernelStats:
     pairs_per_trip: float  # Gaussian–pixel pairs one trip evaluates per thread
     barriers: int  # BAR instructions in the inner loop
     shuffles: int  # SHFL instructions in the inner loop
+    approximate_divisions: int = 0  # float32 `/` in the PTX as div.full/div.approx (2 ulp), not torch's div.rn
 
     @property
     def per_pair(self) -> float:
@@ -129,7 +130,7 @@ def inner_loop(instrs):
     return min(loops, key=len)
 
 
-def _mock_launches(dtype_name: str, H: int, W: int, ts: int):
+def _mock_launches(dtype_name: str, H: int, W: int, ts: int, N: int = 300_000):
     """Every kernel launch of a render and its backward, with mock tensors (no memory):
     (name, (kernel, grid, args, options), Gaussian-pixel pairs per inner-loop trip or None)."""
     import torch
@@ -147,7 +148,6 @@ def _mock_launches(dtype_name: str, H: int, W: int, ts: int):
     i64 = Mock(torch.int64)
     b = Mock(torch.bool)
     size = f.element_size()
-    N = 300_000
     # training's forward and backward (over a background; a photometric loss: the colour's gradient
     # alone), and the backward with depth and alpha
     out = [("forward", rt.forward_launch(f, f, i32, i32, f, f, f, i32, H, W, ts, f),
@@ -185,7 +185,7 @@ def _mock_launches(dtype_name: str, H: int, W: int, ts: int):
                     None))
         from . import layout_triton  # L_layout's value and gradient
 
-        out.append(("layout loss", layout_triton.layout_launch(f, i64, f, f, f, f, N, 3, 1e-12, 0.05), None))
+        out.append(("layout loss", layout_triton.layout_launch(f, i64, f, f, f, f, N, 3, f), None))
         from . import adam_triton  # the optimiser's step over every parameter
 
         params = [Mock(f.dtype, [N, c]) for c in (3, 4, 3, 1, 3, 45)]
@@ -211,8 +211,52 @@ def report(archs=ARCHS, dtypes=("float32", "float64"), H=RENDER_HW[0], W=RENDER_
                     spill_stores=st, spill_loads=ld, shared=int(compiled.metadata.shared),
                     loop_instructions=len(body), pairs_per_trip=pairs or 0.0,
                     barriers=sum(t.split()[0].startswith("BAR") for t in body),
-                    shuffles=sum("SHFL" in t for t in body)))
+                    shuffles=sum("SHFL" in t for t in body),
+                    approximate_divisions=len(re.findall(r"\bdiv\.(?:full|approx)\.", compiled.asm["ptx"]))))
     return rows
+
+
+def variants(sizes, dtype_name: str = "float32", H: int = RENDER_HW[0], W: int = RENDER_HW[1],
+             ts: int = TILE) -> dict[str, int]:
+    """How many compiled variants of each kernel a training run needs whose Gaussian count takes
+    each of `sizes`: Triton compiles one per specialisation key of a launch's arguments (each
+    integer's `% 16` and `== 1`, each pointer's alignment), so an argument that changed its key
+    with every densification would compile the kernel anew at each (seconds: the projection's
+    gradient takes 8 s to compile). Needs TRITON_INTERPRET unset, no GPU."""
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import make_backend
+    from triton.runtime.jit import create_function_from_signature
+
+    backend = make_backend(GPUTarget("cuda", ARCHS[-1], 32))
+    keys: dict[str, set] = {}
+    for n in sizes:
+        for name, (fn, _grid, args, options), _ in _mock_launches(dtype_name, H, W, ts, N=int(n)):
+            _bound, spec, _opts = create_function_from_signature(fn.signature, fn.params, backend)(*args, **options)
+            keys.setdefault(name, set()).add(repr(spec))
+    return {name: len(k) for name, k in keys.items()}
+
+
+def loaded_variants() -> dict[str, int]:
+    """Variants of each of the package's Triton kernels this process has compiled or loaded from
+    Triton's disk cache so far (``module.kernel`` → count; kernels not launched are left out),
+    read from Triton's in-memory caches: a GPU run's figure to set beside :func:`variants`."""
+    import importlib
+    import pkgutil
+
+    from triton.runtime.jit import JITFunction
+
+    from . import __path__ as package_path
+
+    counts = {}
+    for module in pkgutil.iter_modules(package_path):
+        if not module.name.endswith(("_triton", "_triton_backward")):
+            continue
+        for name, fn in vars(importlib.import_module(f"{__package__}.{module.name}")).items():
+            if isinstance(fn, JITFunction):
+                n = sum(len(cache[0]) for cache in fn.device_caches.values())
+                if n:
+                    counts[f"{module.name}.{name}"] = n
+    return counts
 
 
 def report_in_subprocess(archs=ARCHS, **kw) -> list[KernelStats]:

@@ -4,7 +4,9 @@ d = μ[idx_k] − u0_k, r = hypot(‖d‖, eps) and c = n̂_k·d / r (0 within t
 |c| summed into the value and its gradient sign(c)/r · (n̂_k − c·d/r) added into the full-size
 gradient, both in one zeroed buffer: two device operations in all. The value is summed with one
 atomic addition per program, so its last bits may differ from run to run on a GPU (it is only
-logged); the gradient's rows are unique (a repeated row's terms are added atomically too)."""
+logged); the gradient's rows are unique (a repeated row's terms are added atomically too). eps and
+the dead zone are read from a tensor in the loss's dtype: a float argument would reach a GPU's
+kernel as float32 (splatting/optional_triton.py), and eps sets the gradient where μ ≈ u0."""
 
 from __future__ import annotations
 
@@ -20,8 +22,10 @@ _BLOCK = 512
 if triton is not None:
 
     @triton.jit
-    def _layout(means, idx, u0, nhat, full, value, k, s_means, eps, deadzone, BLOCK: tl.constexpr):
+    def _layout(means, idx, u0, nhat, full, value, k, s_means, eps_deadzone, BLOCK: tl.constexpr):
         pid = tl.program_id(0)
+        eps = tl.load(eps_deadzone)
+        deadzone = tl.load(eps_deadzone + 1)
         i = pid * BLOCK + tl.arange(0, BLOCK)
         ok = i < k
         j = tl.load(idx + i, mask=ok, other=0).to(tl.int64)
@@ -45,20 +49,21 @@ if triton is not None:
 
 
 def layout_value_and_gradient(means: torch.Tensor, idx: torch.Tensor, u0: torch.Tensor, nhat_k: torch.Tensor,
-                              eps: float, deadzone: float) -> tuple[torch.Tensor, torch.Tensor]:
+                              eps_deadzone: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(L, ∂L/∂means [N,3] contiguous) for `gaussians.layout_loss_fn`: `means` [N,3] with a unit
-    column stride, `idx` [K] (K ≥ 1), `u0` and `nhat_k` (the unit normals / K) [K,3] contiguous."""
+    column stride, `idx` [K] (K ≥ 1), `u0` and `nhat_k` (the unit normals / K) [K,3] contiguous,
+    `eps_deadzone` [2] (eps, the dead zone) in the means' dtype and on their device."""
     k, n = int(idx.shape[0]), int(means.shape[0])
     buffer = torch.zeros(n * 3 + 1, dtype=means.dtype, device=means.device)
     full, value = buffer[: n * 3].view(n, 3), buffer[n * 3]
-    kernel, grid, args, options = layout_launch(means, idx, u0, nhat_k, full, value, k, means.stride(0), eps,
-                                                deadzone)
+    kernel, grid, args, options = layout_launch(means, idx, u0, nhat_k, full, value, k, means.stride(0),
+                                                eps_deadzone)
     kernel[grid](*args, **options)
     return value, full
 
 
-def layout_launch(means, idx, u0, nhat, full, value, k, s_means, eps, deadzone):
+def layout_launch(means, idx, u0, nhat, full, value, k, s_means, eps_deadzone):
     """(kernel, grid, args, options): spelled out once, for the loss and the compile check."""
     return (_layout, (cdiv(k, _BLOCK),),
-            (means, idx, u0, nhat, full, value, k, s_means, float(eps), float(deadzone)),
+            (means, idx, u0, nhat, full, value, k, s_means, eps_deadzone),
             dict(BLOCK=_BLOCK, num_warps=4))

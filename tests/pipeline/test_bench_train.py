@@ -3,6 +3,8 @@ bad --against refused before anything runs."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from pipeline.bench_train import _markdown, _median, bench_train
@@ -63,3 +65,25 @@ def test_set_overrides_reach_this_checkout_only(tmp_path, monkeypatch):
     assert all("lr_scale" not in c["train"] and c["train"]["iterations"] == 4 for c in other_cfgs)
     assert res["this_overrides"] == {"train": {"lr_scale": 1.0}}
     assert "--set train.lr_scale=1.0" in (tmp_path / "b.md").read_text()
+
+
+def test_windows_split_the_run_by_its_log():
+    """It/s through the run from the train log: a run at 50 it/s for its first 300 iterations
+    (compiles, say) and 100 it/s after shows the slow spans alone, with the Gaussians at each
+    span's end."""
+    from pipeline.bench_train import _windows
+
+    log, t = [[1, 0.01, 1000]], 0.01
+    for it in range(10, 701, 10):
+        t += 0.2 if it <= 300 else 0.1  # 10 iterations
+        log.append([it, round(t, 6), 1000 + it])
+    w = _windows(log, 700)
+    assert [x["to"] for x in w] == [100, 200, 300, 400, 500, 600, 700]
+    assert w[0]["from"] == 1 and w[-1]["gaussians"] == 1700
+    assert all(x["iterations_per_s"] == pytest.approx(100.0) for x in w[3:])
+    assert all(x["iterations_per_s"] < 80 for x in w[:3])
+    assert _windows(log[:1], 700) == [] and _windows(log, 3) == []
+    md = _markdown({**_median([{**_run(700, 5.0, 30.0, None), "windows": w, "kernel_variants": {"adam_triton._adam": 3}}]),
+                    "gpu": None, "device": "cpu", "preset": "paper", "height": 512, "iterations": 700, "repeats": 1,
+                    "checkouts": {"this": "/a"}}, Path("/tmp/demo"), None)
+    assert "| 300–400 | 100.0 | 1,400 |" in md and "`adam_triton._adam` 3" in md

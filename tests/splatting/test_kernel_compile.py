@@ -2,6 +2,11 @@
 no GPU needed: ptxas's register and spill report and the SASS of each kernel's inner loop
 (splatting/kernel_report.py; budgets and their reasons in docs/gpu.md)."""
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
 pytest.importorskip("triton")
@@ -47,6 +52,15 @@ def test_no_spills_and_register_budget(rows):
         assert r.registers <= REG_BUDGET[r.kernel], f"{where}: {r.registers} registers"
 
 
+def test_exact_kernels_divide_as_torch_does(rows):
+    """A float32 `/` compiles to an approximate division (2 ulp) on a GPU, where the interpreter
+    divides exactly: a kernel whose result must equal torch's bit for bit divides with div_rn."""
+    exact = [r for r in rows if r.kernel == "densify statistics"]
+    assert exact and all(r.approximate_divisions == 0 for r in exact), exact
+    # the count is not vacuous: the projection's float32 divisions are the approximate ones
+    assert any(r.approximate_divisions > 0 for r in rows if r.kernel == "project (RGB)" and r.dtype == "float32")
+
+
 def test_inner_loops_within_instruction_budget(rows):
     for r in rows:
         if r.kernel not in PAIR_BUDGET:
@@ -55,3 +69,34 @@ def test_inner_loops_within_instruction_budget(rows):
         assert r.barriers == 0, f"{r.kernel} {r.dtype} sm_{r.arch}: a barrier in the inner loop"
         if r.dtype == "float32":
             assert r.per_pair <= PAIR_BUDGET[r.kernel], f"{r.kernel} sm_{r.arch}: {r.per_pair:.1f} SASS per pair"
+
+
+def test_densification_compiles_no_new_kernel_variants():
+    """A densification changes the Gaussian count, and every launch argument derived from it: the
+    kernels' specialisation keys (hence compiled variants) stay within the count's `% 16` classes,
+    at most 3, over 40 sizes of a run (the optimiser's program boundaries made 13 on a GPU's run)."""
+    import json
+    import random
+
+    rng, n, sizes = random.Random(0), 294_000, []
+    for _ in range(40):
+        n += rng.randint(-3000, 6000)
+        sizes.append(n)
+    env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
+    code = f"import json; from splatting.kernel_report import variants; print(json.dumps(variants({sizes})))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                         cwd=Path(__file__).resolve().parents[2], check=True).stdout
+    counts = json.loads(out.strip().splitlines()[-1])
+    assert counts["adam"] >= 2  # not vacuous: the count's classes do show
+    assert max(counts.values()) <= 3, counts
+
+
+def test_loaded_variants_reads_tritons_caches():
+    """bench train's count of the kernels' compiled variants (a GPU run's), on caches filled here."""
+    env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
+    code = ("from splatting import adam_triton, kernel_report; "
+            "adam_triton._adam.device_caches = {0: ({'a': 1, 'b': 2}, None), 1: ({'c': 3}, None)}; "
+            "print(kernel_report.loaded_variants())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                         cwd=Path(__file__).resolve().parents[2], check=True).stdout
+    assert out.strip().splitlines()[-1] == "{'adam_triton._adam': 3}"
