@@ -87,3 +87,7 @@ def test_windows_split_the_run_by_its_log():
                     "gpu": None, "device": "cpu", "preset": "paper", "height": 512, "iterations": 700, "repeats": 1,
                     "checkouts": {"this": "/a"}}, Path("/tmp/demo"), None)
     assert "| 300–400 | 100.0 | 1,400 |" in md and "`adam_triton._adam` 3" in md
+    runs = [_run(700, 10.0, 30.0, None), _run(700, 5.0, 30.0, None)]  # cold, then warm
+    md = _markdown({**_median(runs), "runs": {"this": runs}, "gpu": "GPU", "device": "cuda", "preset": "paper",
+                    "height": 512, "iterations": 700, "repeats": 2, "checkouts": {"this": "/a"}}, Path("/tmp/demo"), None)
+    assert "Runs of this in order: 70.0, 140.0 it/s" in md
