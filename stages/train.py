@@ -86,11 +86,12 @@ class Params(StageParams):
     projection: Literal["360", "crops", "cubemap"] = Field(
         default="360", description="360 = equirectangular splatting; crops = the paper's 3D-GS baseline "
                                    "(pinhole crops, crop_*); cubemap = six 90° faces of W/4.")
-    crop_fov: float = Field(default=120.0, gt=0, lt=180, description="Field of view of a crop (degrees).")
+    crop_fov: float = Field(default=splatting.PAPER_CROPS["fov_deg"], gt=0, lt=180,
+                            description="Field of view of a crop (degrees).")
     crop_elevations: tuple[float, ...] = Field(
-        default=(-45.0, 0.0, 45.0), description="Elevations of the crop rings (degrees, up positive).")
+        default=splatting.PAPER_CROPS["elevations"], description="Elevations of the crop rings (degrees, up positive).")
     crop_counts: tuple[int, ...] = Field(
-        default=(2, 4, 2), description="Crops per elevation ring, yaws evenly spread from 0 (paper: 8 in all).")
+        default=splatting.PAPER_CROPS["counts"], description="Crops per elevation ring, yaws evenly spread from 0 (paper: 8 in all).")
     crop_size: int | None = Field(
         default=None, ge=8, json_schema_extra={"pixels": "square"},
         description="Crop side in pixels (None = the training height: 512 at 512x1024).")
@@ -108,7 +109,8 @@ class Params(StageParams):
                                        "no needles.")
     crop_loss: bool = Field(
         default=_TRAINER["crop_loss"], description="360: measure L1 and D-SSIM on the eight 120° perspective crops resampled "
-                                   "from the rendered panorama instead of on the panorama itself.")
+                                   "from the rendered panorama instead of on the panorama itself (the paper's crops at the panorama's "
+                                   "height, whatever crop_* say: those are the crops projection's).")
     lambda_coverage: float = Field(
         default=_TRAINER["lambda_coverage"], ge=0, description="Weight of the novel-view coverage loss: mean(1 - alpha) of a small panorama "
         "rendered from a random point between the training cameras (indoors every ray ends on a surface); "
