@@ -8,6 +8,8 @@
 #   profile_step.*         scripts/profile_train_step.py: a step's kernels and host time (with UPSTREAM)
 # Needs torch with CUDA, triton, pytest and the project (installed, or on PYTHONPATH: docs/gpu.md).
 # Switches: BENCH_KERNELS=0 skips the compile report (it needs no GPU: run it elsewhere);
+# T_TESTS, T_RENDER, T_PROFILE, T_TRAIN (seconds) bound each part, so that one lent call of fixed
+# length returns every part's outputs (scripts/gpu_session.sh); XDIST=4 runs the tests on 4 workers;
 # SCENE and UPSTREAM (a run folder of SCENE with the stages before train done, e.g. on a machine
 # with open3d) make bench train and the profile train from there instead of preparing the demo.
 # `scripts/gpu_check.sh prep` (here, where open3d is) prepares that: the demo scene simulated at
@@ -37,10 +39,10 @@ PREP
     du -h .gpucarry/prep.tgz
     exit 0
 fi
-pano() {  # the installed entry point, else the module (the project on PYTHONPATH)
-    local exe; exe=$(dirname "$PY")/pano-pipe
-    if [ -x "$exe" ]; then "$exe" "$@"; else "$PY" -m pipeline.cli "$@"; fi
-}
+# the installed entry point, else the module (the project on PYTHONPATH); an array, so that
+# `timeout` can run it
+PANO=("$(dirname "$PY")/pano-pipe")
+[ -x "${PANO[0]}" ] || PANO=("$PY" -m pipeline.cli)
 OUT=${OUT:-docs/gpu_check}
 mkdir -p "$OUT"
 "$PY" -c "import sys, torch; sys.exit(0 if torch.cuda.is_available() else 'gpu-check: torch sees no CUDA device')"
@@ -59,20 +61,28 @@ backend = triton.compiler.make_backend(triton.runtime.driver.active.get_current_
 spec = create_function_from_signature(fn.signature, fn.params, backend)(*args, **options)[1]
 print("triton", triton.__version__, "binds Adam's float arguments as", {s[0] for s, a in zip(spec, args) if isinstance(a, float)})
 FLOATS
+limit() {  # limit SECONDS CMD...: CMD, stopped after SECONDS when SECONDS is set
+    local t=$1; shift
+    if [ -n "$t" ]; then timeout "$t" "$@"; else "$@"; fi
+}
 status=0
 if [ "${BENCH_KERNELS:-1}" != 0 ]; then
-    pano bench kernels --out "$OUT" 2>&1 | tee "$OUT/bench_kernels.log" || status=1
+    "${PANO[@]}" bench kernels --out "$OUT" 2>&1 | tee "$OUT/bench_kernels.log" || status=1
 fi
 # the tests first: a wrong kernel makes its timings meaningless
-"$PY" -m pytest -q -p no:cacheprovider -m cuda tests/splatting tests/gaussians tests/train 2>&1 | tee "$OUT/tests.txt" || status=1
-pano bench render --device cuda --out "$OUT" 2>&1 | tee "$OUT/bench_render.log" || status=1
+xdist=()
+[ -n "${XDIST:-}" ] && xdist=(-n "$XDIST")
+limit "${T_TESTS:-}" "$PY" -m pytest -q -p no:cacheprovider "${xdist[@]}" -rfE --durations=10 -m cuda \
+    tests/splatting tests/gaussians tests/train 2>&1 | tee "$OUT/tests.txt" || status=1
+limit "${T_RENDER:-}" "${PANO[@]}" bench render --device cuda --out "$OUT" 2>&1 | tee "$OUT/bench_render.log" || status=1
 if [ -n "${UPSTREAM:-}" ]; then
-    "$PY" scripts/profile_train_step.py "$SCENE" "$UPSTREAM" --device cuda --out "$OUT" 2>&1 \
+    limit "${T_PROFILE:-}" "$PY" scripts/profile_train_step.py "$SCENE" "$UPSTREAM" --device cuda --out "$OUT" 2>&1 \
         | tee "$OUT/profile_step.log" || status=1
 fi
 prepared=()
 [ -n "${UPSTREAM:-}" ] && prepared=("$SCENE" --upstream "$UPSTREAM")
 # two runs: the first also compiles every kernel variant, the second finds them in Triton's disk cache
-pano bench train "${prepared[@]}" --device cuda --repeats 2 --out "$OUT" 2>&1 | tee "$OUT/bench_train.log" || status=1
+limit "${T_TRAIN:-}" "${PANO[@]}" bench train "${prepared[@]}" --device cuda --repeats 2 --out "$OUT" 2>&1 \
+    | tee "$OUT/bench_train.log" || status=1
 echo "gpu-check: outputs in $OUT (status $status)"
 exit $status
