@@ -234,11 +234,11 @@ class Trainer:
         turn_maps = self._turn_maps.get(key)
         if turn_maps is None:
             turn_maps = self._turn_maps[key] = TurnMaps(*key, device=self.device)
-        rot = random_turn(self.cfg.turns.random_turn_tilt_deg, self.gen)
+        # cast once, on the device: the view matrix and the turn kernel both take it in this dtype
+        rot = self._to_device(random_turn(self.cfg.turns.random_turn_tilt_deg, self.gen)).to(view.viewmat.dtype)
         with torch.no_grad():
             image, mask = turn_view_images(turn_maps, rot, view.image, view.mask, self.cfg.turns.random_turn_interp)
-        viewmat = view.viewmat.clone()
-        viewmat[:3] = rot.to(viewmat) @ view.viewmat[:3]
+        viewmat = torch.cat([rot @ view.viewmat[:3], view.viewmat[3:]])
         return TrainView(view.name, image, viewmat, view.camera, mask)
 
     # -- one iteration -------------------------------------------------------
@@ -269,7 +269,7 @@ class Trainer:
         lap = _Laps(self.part_seconds, self.device, self._pending_laps)
         bg = self._bg
         if cfg.render.random_background:
-            bg = torch.rand(3, generator=self.gen, dtype=self._bg.dtype).to(self.device)
+            bg = self._to_device(torch.rand(3, generator=self.gen, dtype=self._bg.dtype))
         drawn = self._drawn()
         out = render(drawn, view.viewmat, view.camera, backend=cfg.render.backend, background=bg, sh_degree=self.active_sh)
         lap("render")
@@ -325,6 +325,15 @@ class Trainer:
         torch.where(qn > 1e-8, g.quats, self._consts("unit_quat", (1.0, 0.0, 0.0, 0.0), g.quats.dtype), out=g.quats)
         if self.cfg.optim.max_anisotropy is not None:
             clamp_anisotropy_(g.log_scales, self.cfg.optim.max_anisotropy)
+
+    def _to_device(self, t: torch.Tensor) -> torch.Tensor:
+        """A small tensor drawn on the host (the CPU generator's numbers), on the trainer's device
+        without waiting for it: a copy from pageable memory to a GPU synchronises the stream (the
+        host would wait for the queued iteration: one cudaStreamSynchronize a step on the H200), a
+        pinned one does not (torch's caching host allocator keeps the block until the copy is done)."""
+        if self.device.type != "cuda":
+            return t.to(self.device)
+        return t.pin_memory().to(self.device, non_blocking=True)
 
     def _consts(self, name: str, value, dtype=torch.float32) -> torch.Tensor:
         """A constant tensor on the trainer's device, made once (not copied there at every step)."""

@@ -4,6 +4,7 @@ tile over two programs, and the memory formula of docs/gpu.md. Without CUDA ever
 on CPU tensors in the Triton interpreter, where the dispatched operations are those a GPU
 render would issue."""
 
+import contextlib
 import importlib
 
 import pytest
@@ -94,6 +95,19 @@ def test_backward_never_syncs_and_its_op_count_ignores_visibility(monkeypatch):
         assert float((a.grad.cpu() - r.grad).abs().max()) <= 1e-4 * float(r.grad.abs().max()) + 1e-9
 
 
+@contextlib.contextmanager
+def _cuda_sync_errors():
+    """torch.cuda's synchronisation debug mode set to raise, where DEVICE is a GPU."""
+    if DEVICE.type != "cuda":
+        yield
+        return
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        yield
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+
+
 def test_a_training_step_never_waits_for_the_device(tmp_path, monkeypatch):
     """Trainer.step with the `cuda` backend on DEVICE, between densifications: no operation that
     needs a host sync, and the same operations at every step. Every part takes the path it takes
@@ -118,19 +132,24 @@ def test_a_training_step_never_waits_for_the_device(tmp_path, monkeypatch):
     g = random_points(60, 0, rooms=rooms(root))
     g.is_layout[:30] = True  # layout Gaussians, as every scene with a layout has: L_layout counts too
     g.normals[:30] = torch.tensor([0.0, 1.0, 0.0])
+    # random turns on, as 360 training has them: the turn's rotation is drawn on the host
     cfg = small_config(iterations=10, extent=scene_extent(g.means), backend="cuda", densify_from=100,
-                       densify_until=100, log_every=100, sh_degree_every=0, device=str(DEVICE))
+                       densify_until=100, log_every=100, sh_degree_every=0, device=str(DEVICE), random_turns=True)
     tr = Trainer(g, load_views(root, height=16), cfg)  # 16x32: the counts do not depend on the size
     tr.part_seconds = None  # no timing laps
     tr.step()  # sizes the pair list: the one sync of a run between densifications
     counts = []
     for _ in range(2):
-        with DispatchCounter() as counter:
+        # on a GPU, CUDA's own check too: it also sees what dispatch does not, a blocking copy from
+        # pageable host memory (the turn's rotation made one cudaStreamSynchronize a step on the H200)
+        with DispatchCounter() as counter, _cuda_sync_errors():
             tr.step()
         counts.append(counter)
     assert all(not c.sync_ops for c in counts), [c.summary() for c in counts]
     assert counts[0].ops == counts[1].ops and counts[0].kernels == counts[1].kernels
-    # 53 here with the layout Gaussians, 15 of them allocations that launch nothing; on a GPU one
+    # 59 here with random turns (their 6: the host's draw, its cast, the view matrix's product and
+    # concatenation, the turn's output and kernel; on a GPU its pinned copy as well), 53 without
+    # them; with the layout Gaussians, 15 of them allocations that launch nothing; on a GPU one
     # more: the pair count's copy to the host. 60 before Adam, its finite check and the zeroing of
     # non-finite gradients became one launch (splatting/adam_triton.py; 65 on a GPU, which zeroed
     # with five nan_to_num_); 74 before L_layout became one launch (splatting/layout_triton.py);
@@ -138,7 +157,7 @@ def test_a_training_step_never_waits_for_the_device(tmp_path, monkeypatch):
     # kernels and the PSNR into the loss's, 171 before the fused loss, the turn's and the statistics'
     # kernels and the optimiser's and the log's cuts, ~1,400 before the projection's gradient
     # kernel. docs/gpu.md has them by part. Issue 35 asks for at most 60.
-    assert counts[0].device_ops <= 54, counts[0].summary()
+    assert counts[0].device_ops <= 60, counts[0].summary()  # issue 35's bound, 360's turns included
     # the background's blend and the PSNR are in kernels
     assert "rsub" not in counts[0].ops and "log10" not in counts[0].ops
 
