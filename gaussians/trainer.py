@@ -234,11 +234,17 @@ class Trainer:
         turn_maps = self._turn_maps.get(key)
         if turn_maps is None:
             turn_maps = self._turn_maps[key] = TurnMaps(*key, device=self.device)
-        # cast once, on the device: the view matrix and the turn kernel both take it in this dtype
-        rot = self._to_device(random_turn(self.cfg.turns.random_turn_tilt_deg, self.gen)).to(view.viewmat.dtype)
+        rot = random_turn(self.cfg.turns.random_turn_tilt_deg, self.gen).numpy()
+        # one copy to the device carries R (3x3, the turn kernel's) and diag(R, 1) (4x4, the view
+        # matrix's), made on the host in the view's dtype: no cast, clone or concatenation there
+        both = np.concatenate([rot.ravel(), np.pad(rot, ((0, 1), (0, 1))).ravel()])
+        both[-1] = 1.0
+        dtype = np.dtype(str(view.viewmat.dtype).removeprefix("torch."))
+        both = self._to_device(torch.from_numpy(both.astype(dtype)))
         with torch.no_grad():
-            image, mask = turn_view_images(turn_maps, rot, view.image, view.mask, self.cfg.turns.random_turn_interp)
-        viewmat = torch.cat([rot @ view.viewmat[:3], view.viewmat[3:]])
+            image, mask = turn_view_images(turn_maps, both[:9].view(3, 3), view.image, view.mask,
+                                           self.cfg.turns.random_turn_interp)
+        viewmat = both[9:].view(4, 4) @ view.viewmat
         return TrainView(view.name, image, viewmat, view.camera, mask)
 
     # -- one iteration -------------------------------------------------------

@@ -147,17 +147,18 @@ def test_a_training_step_never_waits_for_the_device(tmp_path, monkeypatch):
         counts.append(counter)
     assert all(not c.sync_ops for c in counts), [c.summary() for c in counts]
     assert counts[0].ops == counts[1].ops and counts[0].kernels == counts[1].kernels
-    # 59 here with random turns (their 6: the host's draw, its cast, the view matrix's product and
-    # concatenation, the turn's output and kernel; on a GPU its pinned copy as well), 53 without
-    # them; with the layout Gaussians, 15 of them allocations that launch nothing; on a GPU one
-    # more: the pair count's copy to the host. 60 before Adam, its finite check and the zeroing of
+    # 57 here with random turns (their 4: the host's draw, the view matrix's product, the turn's
+    # output and kernel), 53 without them; with the layout Gaussians, 15 of them allocations that
+    # launch nothing. On a GPU up to 5 more: the turn's copy to the device from pinned memory (the
+    # pinning, which may dispatch as is_pinned and _pin_memory, runs on the host; the copy) and the
+    # pair count's copy to the host: ≤ 62 counted, of which ≤ 60 reach the device. 60 before Adam, its finite check and the zeroing of
     # non-finite gradients became one launch (splatting/adam_triton.py; 65 on a GPU, which zeroed
     # with five nan_to_num_); 74 before L_layout became one launch (splatting/layout_triton.py);
     # 74 without layout Gaussians before the background went into the raster
     # kernels and the PSNR into the loss's, 171 before the fused loss, the turn's and the statistics'
     # kernels and the optimiser's and the log's cuts, ~1,400 before the projection's gradient
     # kernel. docs/gpu.md has them by part. Issue 35 asks for at most 60.
-    assert counts[0].device_ops <= 60, counts[0].summary()  # issue 35's bound, 360's turns included
+    assert counts[0].device_ops <= (57 if DEVICE.type == "cpu" else 62), counts[0].summary()
     # the background's blend and the PSNR are in kernels
     assert "rsub" not in counts[0].ops and "log10" not in counts[0].ops
 
