@@ -237,8 +237,9 @@ class Trainer:
         rot = random_turn(self.cfg.turns.random_turn_tilt_deg, self.gen).numpy()
         # one copy to the device carries R (3x3, the turn kernel's) and diag(R, 1) (4x4, the view
         # matrix's), made on the host in the view's dtype: no cast, clone or concatenation there
-        both = np.concatenate([rot.ravel(), np.pad(rot, ((0, 1), (0, 1))).ravel()])
-        both[-1] = 1.0
+        turn4 = np.eye(4)
+        turn4[:3, :3] = rot
+        both = np.concatenate([rot.ravel(), turn4.ravel()])
         dtype = np.dtype(str(view.viewmat.dtype).removeprefix("torch."))
         both = self._to_device(torch.from_numpy(both.astype(dtype)))
         with torch.no_grad():
