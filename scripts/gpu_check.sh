@@ -51,14 +51,13 @@ mkdir -p "$OUT"
 "$PY" - <<'FLOATS' 2>&1 | tee "$OUT/triton_floats.txt" || true
 import torch
 import triton
-from triton.runtime.jit import create_function_from_signature
 
 from splatting import adam_triton
+from splatting.kernel_report import bind
 
 t = torch.zeros(4, dtype=torch.float64, device="cuda")
 fn, _grid, args, options = adam_triton.adam_launch([(t, t, t, t, 1e-3)], 1, (0.9, 0.999), 1e-15, t)
-backend = triton.compiler.make_backend(triton.runtime.driver.active.get_current_target())
-spec = create_function_from_signature(fn.signature, fn.params, backend)(*args, **options)[1]
+spec = bind(fn, args, options, triton.compiler.make_backend(triton.runtime.driver.active.get_current_target()))[1]
 print("triton", triton.__version__, "binds Adam's float arguments as", {s[0] for s, a in zip(spec, args) if isinstance(a, float)})
 FLOATS
 limit() {  # limit SECONDS CMD...: CMD, stopped after SECONDS when SECONDS is set

@@ -68,6 +68,17 @@ def _cuobjdump() -> str:
     return found
 
 
+def bind(fn, args, options, backend=None):
+    """(bound arguments, specialisation key, options) of ``fn[grid](*args, **options)``, as
+    Triton's own launcher binds them for `backend` (default: sm_90's, no GPU needed)."""
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import make_backend
+    from triton.runtime.jit import create_function_from_signature
+
+    backend = backend or make_backend(GPUTarget("cuda", ARCHS[-1], 32))
+    return create_function_from_signature(fn.signature, fn.params, backend)(*args, **options)
+
+
 def _compile(fn, args, options, arch):
     """Compile ``fn`` as ``fn[grid](*args, **options)`` would for ``sm_<arch>``; returns
     (compiled kernel, ptxas log)."""
@@ -75,12 +86,10 @@ def _compile(fn, args, options, arch):
     from triton import knobs
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource, make_backend
-    from triton.runtime.jit import create_function_from_signature
 
     target = GPUTarget("cuda", arch, 32)
     backend = make_backend(target)
-    binder = create_function_from_signature(fn.signature, fn.params, backend)
-    bound, spec, opts = binder(*args, **options)
+    bound, spec, opts = bind(fn, args, options, backend)
     opts, signature, constexprs, attrs = fn._pack_args(backend, dict(options), bound, spec, opts)
     log = io.StringIO()
     # ptxas prints its -v report only when it runs: bypass triton's cache
@@ -223,16 +232,10 @@ def variants(sizes, dtype_name: str = "float32", H: int = RENDER_HW[0], W: int =
     integer's `% 16` and `== 1`, each pointer's alignment), so an argument that changed its key
     with every densification would compile the kernel anew at each (seconds: the projection's
     gradient takes 8 s to compile). Needs TRITON_INTERPRET unset, no GPU."""
-    from triton.backends.compiler import GPUTarget
-    from triton.compiler import make_backend
-    from triton.runtime.jit import create_function_from_signature
-
-    backend = make_backend(GPUTarget("cuda", ARCHS[-1], 32))
     keys: dict[str, set] = {}
     for n in sizes:
         for name, (fn, _grid, args, options), _ in _mock_launches(dtype_name, H, W, ts, N=int(n)):
-            _bound, spec, _opts = create_function_from_signature(fn.signature, fn.params, backend)(*args, **options)
-            keys.setdefault(name, set()).add(repr(spec))
+            keys.setdefault(name, set()).add(repr(bind(fn, args, options)[1]))
     return {name: len(k) for name, k in keys.items()}
 
 
@@ -259,18 +262,34 @@ def loaded_variants() -> dict[str, int]:
     return counts
 
 
-def report_in_subprocess(archs=ARCHS, **kw) -> list[KernelStats]:
-    """:func:`report` in fresh Pythons whose triton is not in interpreter mode, one per target
-    architecture, run side by side (ptxas is single-threaded)."""
+def _compiled_python(code: str) -> subprocess.Popen:
+    """`python -c code` in a fresh Python whose triton is not in interpreter mode (the compile
+    checks', from a test process that runs the kernels in the interpreter), this checkout first on
+    its path; stdout and stderr piped as text."""
     env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
     root = Path(__file__).resolve().parents[1]
     env["PYTHONPATH"] = os.pathsep.join([str(root)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+    return subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env, cwd=root)
+
+
+def last_line_compiled(code: str) -> str:
+    """The last line `code` prints, run by :func:`_compiled_python`; its stderr's end on failure."""
+    proc = _compiled_python(code)
+    out, err = proc.communicate()
+    if proc.returncode != 0 or not out.strip():
+        raise RuntimeError(f"compiled-mode python failed:\n{err[-4000:]}")
+    return out.strip().splitlines()[-1]
+
+
+def report_in_subprocess(archs=ARCHS, **kw) -> list[KernelStats]:
+    """:func:`report` in fresh Pythons whose triton is not in interpreter mode, one per target
+    architecture, run side by side (ptxas is single-threaded)."""
     procs = []
     for arch in archs:
         code = ("import json; from dataclasses import asdict; from splatting.kernel_report import report; "
                 f"print(json.dumps([asdict(r) for r in report(archs=({arch},), **{kw!r})]))")
-        procs.append(subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                      text=True, env=env, cwd=root))
+        procs.append(_compiled_python(code))
     rows = []
     for proc in procs:
         out, err = proc.communicate()

@@ -2,16 +2,13 @@
 no GPU needed: ptxas's register and spill report and the SASS of each kernel's inner loop
 (splatting/kernel_report.py; budgets and their reasons in docs/gpu.md)."""
 
-import os
-import subprocess
-import sys
-from pathlib import Path
+import json
 
 import pytest
 
 pytest.importorskip("triton")
 
-from splatting.kernel_report import report_in_subprocess  # noqa: E402
+from splatting.kernel_report import last_line_compiled, report_in_subprocess  # noqa: E402
 
 # registers per thread: a forward at <= 128 keeps >= 16 warps resident per SM (65536 registers);
 # the backward holds 11 per-pixel values for 8 pixels per thread, so it may use the whole 255.
@@ -75,18 +72,14 @@ def test_densification_compiles_no_new_kernel_variants():
     """A densification changes the Gaussian count, and every launch argument derived from it: the
     kernels' specialisation keys (hence compiled variants) stay within the count's `% 16` classes,
     at most 3, over 40 sizes of a run (the optimiser's program boundaries made 13), the projection's 1."""
-    import json
     import random
 
     rng, n, sizes = random.Random(0), 294_000, []
     for _ in range(40):
         n += rng.randint(-3000, 6000)
         sizes.append(n)
-    env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
-    code = f"import json; from splatting.kernel_report import variants; print(json.dumps(variants({sizes})))"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
-                         cwd=Path(__file__).resolve().parents[2], check=True).stdout
-    counts = json.loads(out.strip().splitlines()[-1])
+    counts = json.loads(last_line_compiled(
+        f"import json; from splatting.kernel_report import variants; print(json.dumps(variants({sizes})))"))
     assert counts["adam"] >= 2  # not vacuous: the count's classes do show
     assert max(counts.values()) <= 3, counts
     # the projection's kernels, the slowest to compile (3.4 s and 8.2 s for SH 3), once for all counts
@@ -95,10 +88,8 @@ def test_densification_compiles_no_new_kernel_variants():
 
 def test_loaded_variants_reads_tritons_caches():
     """bench train's count of the kernels' compiled variants (a GPU run's), on caches filled here."""
-    env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
-    code = ("from splatting import adam_triton, kernel_report; "
-            "adam_triton._adam.device_caches = {0: ({'a': 1, 'b': 2}, None), 1: ({'c': 3}, None)}; "
-            "print(kernel_report.loaded_variants())")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
-                         cwd=Path(__file__).resolve().parents[2], check=True).stdout
-    assert out.strip().splitlines()[-1] == "{'adam_triton._adam': 3}"
+    out = last_line_compiled(
+        "from splatting import adam_triton, kernel_report; "
+        "adam_triton._adam.device_caches = {0: ({'a': 1, 'b': 2}, None), 1: ({'c': 3}, None)}; "
+        "print(kernel_report.loaded_variants())")
+    assert out == "{'adam_triton._adam': 3}"
