@@ -68,28 +68,32 @@ def recorded_background(settings: dict | None, params: dict | None) -> tuple[flo
     return tuple(float(x) for x in bg) if isinstance(bg, list | tuple) and len(bg) == 3 else None
 
 
-def render_on_device(g, pose_c2w: np.ndarray, camera, backend: str | None = None, background=None, rig=None):
+def render_on_device(g, pose_c2w: np.ndarray, camera, backend: str | None = None, background=None, rig=None,
+                     tile_size: int | None = None):
     """The render of `g` from a camera-to-world pose as the renderer returns it, on the model's
-    device (what an interactive viewer shows; `render_pose` downloads and normalises it)."""
+    device (what an interactive viewer shows; `render_pose` downloads and normalises it).
+    `tile_size` None: the renderer's default."""
     from gaussians.model import render_stitched
 
     render = _render_fn()
     dtype, device = g.means.dtype, g.means.device
     viewmat = torch.linalg.inv(torch.as_tensor(np.asarray(pose_c2w), dtype=torch.float64)).to(dtype=dtype, device=device)
+    tiles = {} if tile_size is None else {"tile_size": int(tile_size)}
     with torch.no_grad():
         if rig is None:
-            return render(g, viewmat, camera, backend=backend, background=background)
-        return render_stitched(g, viewmat, camera.height, camera.width, rig, backend=backend, background=background)
+            return render(g, viewmat, camera, backend=backend, background=background, **tiles)
+        return render_stitched(g, viewmat, camera.height, camera.width, rig, backend=backend, background=background,
+                               **tiles)
 
 
 def render_pose(g, pose_c2w: np.ndarray, camera, backend: str | None = None, background=None,
-                rig=None) -> Rendered:
+                rig=None, tile_size: int | None = None) -> Rendered:
     """Render `g` from a camera-to-world pose; depth is normalised by alpha (the renderer
     returns Σ T·α·‖t‖, whose ratio to alpha is the expected distance). With `rig` (a
     splatting.PerspectiveRig; `camera` then an EquirectCamera) the panorama is stitched from the
     rig's rendered crops, as the perspective baseline produces its test panoramas."""
     t0 = time.perf_counter()
-    out = render_on_device(g, pose_c2w, camera, backend=backend, background=background, rig=rig)
+    out = render_on_device(g, pose_c2w, camera, backend=backend, background=background, rig=rig, tile_size=tile_size)
     if g.means.device.type == "cuda":
         torch.cuda.synchronize()
     seconds = time.perf_counter() - t0

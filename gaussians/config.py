@@ -15,7 +15,7 @@ import json
 from dataclasses import dataclass, field
 
 from gaussians.mip_filter import DEFAULT_VARIANCE
-from splatting.render import DEFAULT_EPS2D
+from splatting.render import DEFAULT_EPS2D, DEFAULT_TILE
 
 __all__ = ["TrainConfig", "LossConfig", "OptimConfig", "DensifyConfig", "RenderConfig", "TurnConfig",
            "AppearanceConfig"]
@@ -111,6 +111,8 @@ class RenderConfig:
     #: (every ray of an indoor panorama ends on one); renders for evaluation use `background`
     random_background: bool = False
     backend: str | None = None
+    #: the rasteriser's square tile (pixels); the image does not depend on it, only the speed
+    tile_size: int = DEFAULT_TILE
 
 
 @dataclass

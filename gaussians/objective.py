@@ -126,7 +126,7 @@ class TrainingObjective:
         viewmat[:3, 3] = -pos.to(viewmat.dtype)
         h = int(cfg.loss.coverage_height)
         out = render(g, viewmat, splatting.EquirectCamera(h, 2 * h), backend=cfg.render.backend,
-                     background=background, sh_degree=0)
+                     background=background, sh_degree=0, tile_size=cfg.render.tile_size)
         return (1.0 - out.alpha).mean()
 
     def _pixel_weight(self, view) -> torch.Tensor | None:

@@ -278,7 +278,8 @@ class Trainer:
         if cfg.render.random_background:
             bg = self._to_device(torch.rand(3, generator=self.gen, dtype=self._bg.dtype))
         drawn = self._drawn()
-        out = render(drawn, view.viewmat, view.camera, backend=cfg.render.backend, background=bg, sh_degree=self.active_sh)
+        out = render(drawn, view.viewmat, view.camera, backend=cfg.render.backend, background=bg, sh_degree=self.active_sh,
+                     tile_size=cfg.render.tile_size)
         lap("render")
         pred = self._as_trained(view, out.image)
         terms = self.objective(self.g, drawn, pred, view, self.appearance, self._bg, self.gen)
@@ -407,7 +408,7 @@ class Trainer:
         drawn = self._drawn()
         for v in views or self.views:
             out = render(drawn, v.viewmat, v.camera, backend=self.cfg.render.backend, background=self._bg,
-                         sh_degree=self.active_sh)
+                         sh_degree=self.active_sh, tile_size=self.cfg.render.tile_size)
             vals.append(psnr(self._as_trained(v, out.image), v.image, v.mask))
         return float(np.mean(vals))
 

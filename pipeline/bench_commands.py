@@ -32,6 +32,9 @@ def bench_render(
     device: Annotated[str, typer.Option(
         help="cpu: the CPU table; cuda: the GPU table (512x1024 and 1024x2048, 100k-1M Gaussians, "
              "cuda vs torch backends; bench_render_gpu.{json,md}).")] = "cpu",
+    tile_sizes: Annotated[Optional[str], typer.Option(
+        help="With --device cuda: the tile sizes (pixels) of the cuda backend's rows, e.g. 8,16 "
+             "(default: the renderer's).")] = None,
     out: BenchOutOpt = BENCH_OUT,
 ) -> None:
     """Renderer speed, memory, cubemap baseline and tangent-plane accuracy, per backend."""
@@ -43,7 +46,16 @@ def bench_render(
         reason = bench_gpu.no_cuda_reason()
         if reason:
             raise PanoError("--device", reason)
-        bench_gpu.run_gpu_render_bench(out_json=out / "bench_render_gpu.json", out_md=out / "bench_render_gpu.md")
+        tiles = {}
+        if tile_sizes is not None:
+            try:
+                tiles["tile_sizes"] = tuple(int(t) for t in tile_sizes.split(","))
+            except ValueError:
+                raise PanoError("--tile-sizes", f"must be integers separated by commas, got {tile_sizes!r}") from None
+            if not all(1 <= t <= 32 for t in tiles["tile_sizes"]):
+                raise PanoError("--tile-sizes", f"each must be 1..32, got {tile_sizes!r}")
+        bench_gpu.run_gpu_render_bench(out_json=out / "bench_render_gpu.json", out_md=out / "bench_render_gpu.md",
+                                       **tiles)
         return
     from splatting.bench import main as bench_main
 

@@ -6,9 +6,14 @@
 #   bench_render_gpu.*     pano-pipe bench render --device cuda
 #   bench_train.*          pano-pipe bench train --device cuda (paper preset, demo scene, 512x1024)
 #   profile_step.*         scripts/profile_train_step.py: a step's kernels and host time (with UPSTREAM)
+#   tile8/bench_train.*    bench train once more with 8x8 tiles in training and evaluation
+#   cap100k/bench_train.*  bench train with the model held at 100k Gaussians: evaluation FPS at 100k
+#                          trained Gaussians, and 7,000 iterations of a 4-panorama room of a real
+#                          room's size (issue 35's 85k)
 # Needs torch with CUDA, triton, pytest and the project (installed, or on PYTHONPATH: docs/gpu.md).
 # Switches: BENCH_KERNELS=0 skips the compile report (it needs no GPU: run it elsewhere);
-# T_TESTS, T_RENDER, T_PROFILE, T_TRAIN (seconds) bound each part, so that one lent call of fixed
+# TILES (default 8,16): the tile sizes of bench render's cuda rows;
+# T_TESTS, T_RENDER, T_PROFILE, T_TRAIN, T_MORE (seconds) bound each part, so that one lent call of fixed
 # length returns every part's outputs (scripts/gpu_session.sh); XDIST=4 runs the tests on 4 workers;
 # SCENE and UPSTREAM (a run folder of SCENE with the stages before train done, e.g. on a machine
 # with open3d) make bench train and the profile train from there instead of preparing the demo.
@@ -73,7 +78,8 @@ xdist=()
 [ -n "${XDIST:-}" ] && xdist=(-n "$XDIST")
 limit "${T_TESTS:-}" "$PY" -m pytest -q -p no:cacheprovider "${xdist[@]}" -rfE --durations=10 -m cuda \
     tests/splatting tests/gaussians tests/train 2>&1 | tee "$OUT/tests.txt" || status=1
-limit "${T_RENDER:-}" "${PANO[@]}" bench render --device cuda --out "$OUT" 2>&1 | tee "$OUT/bench_render.log" || status=1
+limit "${T_RENDER:-}" "${PANO[@]}" bench render --device cuda --tile-sizes "${TILES:-8,16}" --out "$OUT" 2>&1 \
+    | tee "$OUT/bench_render.log" || status=1
 if [ -n "${UPSTREAM:-}" ]; then
     limit "${T_PROFILE:-}" "$PY" scripts/profile_train_step.py "$SCENE" "$UPSTREAM" --device cuda --out "$OUT" 2>&1 \
         | tee "$OUT/profile_step.log" || status=1
@@ -83,5 +89,12 @@ prepared=()
 # two runs: the first also compiles every kernel variant, the second finds them in Triton's disk cache
 limit "${T_TRAIN:-}" "${PANO[@]}" bench train "${prepared[@]}" --device cuda --repeats 2 --out "$OUT" 2>&1 \
     | tee "$OUT/bench_train.log" || status=1
+# the kernels are in the cache now: one run each
+mkdir -p "$OUT/tile8" "$OUT/cap100k"
+limit "${T_MORE:-}" "${PANO[@]}" bench train "${prepared[@]}" --device cuda --repeats 1 --out "$OUT/tile8" \
+    --set train.tile_size=8 --set evaluate.tile_size=8 2>&1 | tee "$OUT/tile8/bench_train.log" || status=1
+limit "${T_MORE:-}" "${PANO[@]}" bench train "${prepared[@]}" --device cuda --repeats 1 --out "$OUT/cap100k" \
+    --set train.max_init_points=100000 --set train.max_gaussians=100000 2>&1 \
+    | tee "$OUT/cap100k/bench_train.log" || status=1
 echo "gpu-check: outputs in $OUT (status $status)"
 exit $status

@@ -19,4 +19,5 @@ trap 'tar czf "$OUT/gpu_check.tgz" -C /tmp gpu_check' EXIT
 nvidia-smi > "$G/nvidia_smi.txt" 2>&1
 BENCH_KERNELS=0 PY=python3 SCENE=$PWD/.gpuprep/demo512 UPSTREAM=$PWD/.gpuprep/upstream512 OUT=$G XDIST=4 \
     T_TESTS=${T_TESTS:-240} T_RENDER=${T_RENDER:-100} T_PROFILE=${T_PROFILE:-50} T_TRAIN=${T_TRAIN:-300} \
+    T_MORE=${T_MORE:-90} \
     bash scripts/gpu_check.sh

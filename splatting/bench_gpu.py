@@ -17,7 +17,7 @@ import torch
 
 from .bench import indoor_scene, psnr, write_atomic
 from .cameras import EquirectCamera
-from .render import render
+from .render import DEFAULT_TILE, render
 from .stitch import render_cubemap
 
 RESOLUTIONS = ((512, 1024), (1024, 2048))
@@ -55,7 +55,7 @@ def _peak_mb(fn):
     return (torch.cuda.max_memory_allocated() - base) / 2**20
 
 
-def bench_one(H, W, n, backend, repeats, seed=0):
+def bench_one(H, W, n, backend, repeats, seed=0, tile_size=DEFAULT_TILE):
     scene = [x.cuda() for x in indoor_scene(n, seed)]
     cam = EquirectCamera(H, W)
     vm = torch.eye(4, device="cuda")
@@ -63,10 +63,10 @@ def bench_one(H, W, n, backend, repeats, seed=0):
 
     def fwd():
         with torch.no_grad():
-            return render(*scene, vm, cam, backend=backend)
+            return render(*scene, vm, cam, backend=backend, tile_size=tile_size)
 
     def fwdbwd():
-        out = render(*params, vm, cam, backend=backend)
+        out = render(*params, vm, cam, backend=backend, tile_size=tile_size)
         (out.image.sum() + 0.1 * out.depth.sum()).backward()
         for p in params:
             p.grad = None
@@ -77,7 +77,7 @@ def bench_one(H, W, n, backend, repeats, seed=0):
     fwdbwd()
     t_f = _cuda_time(fwd, repeats)
     t_fb = _cuda_time(fwdbwd, repeats)
-    return {"height": H, "width": W, "gaussians": n, "backend": backend, "forward_s": t_f,
+    return {"height": H, "width": W, "gaussians": n, "backend": backend, "tile_size": tile_size, "forward_s": t_f,
             "forward_backward_s": t_fb, "fps": 1.0 / t_f if t_f > 0 else None,
             "peak_mem_forward_mb": round(_peak_mb(fwd), 1), "peak_mem_forward_backward_mb": round(_peak_mb(fwdbwd), 1)}
 
@@ -98,7 +98,10 @@ def bench_cubemap(H, W, n, repeats, seed=0):
 
 
 def run_gpu_render_bench(resolutions=RESOLUTIONS, counts=COUNTS, backends=("cuda", "torch"), repeats=10,
-                         out_json="docs/bench_render_gpu.json", out_md="docs/bench_render_gpu.md", log=print) -> dict:
+                         out_json="docs/bench_render_gpu.json", out_md="docs/bench_render_gpu.md", log=print,
+                         tile_sizes=(DEFAULT_TILE,)) -> dict:
+    """The table above; `tile_sizes`: the ``cuda`` backend's rows for each (the torch reference's
+    speed does not depend on it: it runs at the default only)."""
     result = {"machine": {"gpu": torch.cuda.get_device_name(), "torch": torch.__version__,
                           "cuda": torch.version.cuda},
               "repeats": repeats, "render": [], "cubemap": []}
@@ -115,8 +118,9 @@ def run_gpu_render_bench(resolutions=RESOLUTIONS, counts=COUNTS, backends=("cuda
                     result["render"].append({"height": H, "width": W, "gaussians": n, "backend": be,
                                              "skipped": "torch reference: too slow at this size"})
                     continue
-                log(f"bench (GPU): {H}x{W} {n} gaussians, {be}")
-                result["render"].append(bench_one(H, W, n, be, repeats))
+                for ts in tile_sizes if be == "cuda" else (DEFAULT_TILE,):
+                    log(f"bench (GPU): {H}x{W} {n} gaussians, {be}, {ts}x{ts} tiles")
+                    result["render"].append(bench_one(H, W, n, be, repeats, tile_size=ts))
     for H, W in resolutions:
         log(f"bench (GPU): cubemap {H}x{W} 300000")
         result["cubemap"].append(bench_cubemap(H, W, 300_000, repeats))
@@ -136,10 +140,11 @@ def to_markdown(result) -> str:
     rows = []
     for r in result["render"]:
         if "skipped" in r:
-            rows.append(f"| {r['height']}×{r['width']} | {r['gaussians']:,} | {r['backend']} | – | – | – | – | "
+            rows.append(f"| {r['height']}×{r['width']} | {r['gaussians']:,} | {r['backend']} | – | – | – | – | – | "
                         f"{r['skipped']} |")
             continue
-        rows.append(f"| {r['height']}×{r['width']} | {r['gaussians']:,} | {r['backend']} | {_ms(r['forward_s'])} | "
+        tile = r.get("tile_size", DEFAULT_TILE)  # results written before the column
+        rows.append(f"| {r['height']}×{r['width']} | {r['gaussians']:,} | {r['backend']} | {tile} | {_ms(r['forward_s'])} | "
                     f"{_ms(r['forward_backward_s'])} | {r['fps']:.0f} | {r['peak_mem_forward_mb']:.0f} / "
                     f"{r['peak_mem_forward_backward_mb']:.0f} | |")
     cube = [f"| {c['height']}×{c['width']} | {c['gaussians']:,} | {c['backend']} | {_ms(c['direct_s'])} | "
@@ -152,8 +157,8 @@ Triton {m['triton']}); median of {result['repeats']} runs timed with CUDA events
 docs/bench_render.md (Gaussians on the walls of a box around the camera). Peak memory: GPU memory
 allocated during the call above what was allocated before it (forward / forward+backward).
 
-| resolution | Gaussians | backend | forward ms | fwd+bwd ms | FPS | peak MiB | note |
-|---|---|---|---|---|---|---|---|
+| resolution | Gaussians | backend | tile | forward ms | fwd+bwd ms | FPS | peak MiB | note |
+|---|---|---|---|---|---|---|---|---|
 {chr(10).join(rows)}
 
 Direct 360° against the cubemap baseline (six 90° faces of W/4, resampled), default backend:

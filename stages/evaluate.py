@@ -33,6 +33,7 @@ from runtime.stage import Loaded, StageContext
 from schemas.evaluate import EvaluateOutput, ViewMetrics
 from schemas.scene import Scene, View
 from schemas.stage_params import NAMES_FILE, StageParams
+from splatting import DEFAULT_TILE
 
 Output = EvaluateOutput
 
@@ -46,6 +47,9 @@ class Params(StageParams):
         "'image' = each test image's own size, or an explicit [H, W].",
     )
     backend: str | None = Field(default=None, description="Splatting backend (None: the renderer's default).")
+    tile_size: int = Field(
+        default=DEFAULT_TILE, ge=1, le=32,
+        description="The rasteriser's square tile in pixels: speed only, the images do not depend on it.")
     device: Literal["auto", "cpu", "cuda"] = Field(
         default="auto",
         description="Where the test views are rendered: auto = CUDA when available, else the CPU.")
@@ -258,7 +262,7 @@ def run(ctx: StageContext) -> EvaluateOutput:
             size = eval_size(p, tdata.resolution, native.shape[:2])
             gt = read_rgb(img_path, size=size)
             r = render_pose(g, v.pose_matrix, equirect_camera(*size), backend=p.backend, background=background,
-                            rig=stitch_rig(tdata, size))
+                            rig=stitch_rig(tdata, size), tile_size=p.tile_size)
             backend = r.backend
             mask = valid_mask(ctx.scene, v, *size)
             m = view_metrics(r.image, gt, lpips_model, mask)
@@ -292,7 +296,7 @@ def run(ctx: StageContext) -> EvaluateOutput:
         # host memory and the metrics are not part of rendering it.
         pose, cam, rig = views[0].pose_matrix, equirect_camera(*size), stitch_rig(tdata, size)
         times = [render_seconds(lambda: render_on_device(g, pose, cam, backend=p.backend, background=background,
-                                                         rig=rig),
+                                                         rig=rig, tile_size=p.tile_size),
                                 device) for _ in range(p.fps_repeats)]
         fps = 1.0 / max(statistics.median(times), 1e-9)
         threads = torch.get_num_threads()

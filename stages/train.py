@@ -216,6 +216,10 @@ class Params(StageParams):
         description="Random seed of the view order, random init and densification.")
     backend: Literal["cpp", "cuda", "torch"] | None = Field(
         default=None, description="splatting backend; None = its default for the device (cpp on CPU, cuda on CUDA).")
+    tile_size: int = Field(
+        default=splatting.DEFAULT_TILE, ge=1, le=32,
+        description="The rasteriser's square tile in pixels: speed only, the images do not depend on it "
+                    "(docs/gpu.md, tile size).")
     device: Literal["auto", "cpu", "cuda"] = Field(
         default="auto", description="Where training runs: auto = CUDA when available, else the CPU.")
     threads: int | None = Field(default=None, ge=1, description="torch threads (None = leave as is).")

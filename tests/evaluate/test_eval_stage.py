@@ -67,6 +67,29 @@ def test_evaluate_without_test_views_flags_train(tmp_path, monkeypatch):
     assert out.lpips_reason.startswith("disabled")
 
 
+def test_the_tile_size_reaches_every_render_and_changes_no_metric(tmp_path, monkeypatch):
+    """`evaluate.tile_size` is the renderer's (speed only): each render of the stage, the timed ones
+    too, gets it, and the metrics equal those at the default tile."""
+    import splatting
+
+    monkeypatch.setenv("PANO_PIPE_LPIPS_WEIGHTS", str(tmp_path / "none"))
+    scene = make_scene(tmp_path / "s", views=1, test_views=1, height=16)
+    write_train_artifact(tmp_path / "run", backprojected_gaussians(scene), resolution=(16, 32))
+    default, _ = _run(scene, tmp_path / "run", fps_repeats=1, lpips=False)
+    seen, real = [], splatting.render
+
+    def spy(*args, **kw):
+        seen.append(kw.get("tile_size"))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(splatting, "render", spy)
+    small, _ = _run(scene, tmp_path / "run", fps_repeats=2, lpips=False, tile_size=5)
+    assert len(seen) == 1 + 2 and set(seen) == {5}
+    assert small.views[0].psnr == pytest.approx(default.views[0].psnr, abs=1e-4)
+    with pytest.raises(Exception):
+        evaluate.Params(tile_size=64)
+
+
 def test_params_reject_unknown_and_bad_values():
     with pytest.raises(Exception):
         evaluate.Params(bogus=1)

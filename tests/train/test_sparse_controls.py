@@ -98,6 +98,8 @@ def test_every_shared_setting_reaches_the_trainer():
             changed = "bilinear"
         if name == "sh_degree":
             changed = 1
+        if name == "tile_size":
+            changed = 8
         cfg = make_config(Params(**{name: changed, "lr_scale": 0.25}), 4, 2.0)
         expected = 0.25 * changed if name in _SCALED_LRS else changed
         assert cfg.flat()[name] == pytest.approx(expected), name

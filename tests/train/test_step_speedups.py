@@ -318,3 +318,22 @@ def test_trainer_reports_the_seconds_of_each_part_of_the_step(tiny_room):
     assert list(parts) == ["render", "losses", "backward", "optimiser", "densify", "log"]
     assert all(v > 0 for v in parts.values())
     assert sum(parts.values()) <= tr.train_seconds  # the parts lie inside the timed iterations
+
+
+def test_every_training_render_uses_the_configured_tile_size(tiny_room, monkeypatch):
+    """`train.tile_size` (speed only) reaches each render the trainer makes: the steps', the
+    coverage term's and the PSNR's."""
+    seen = []
+    real = splatting.render
+
+    def spy(*args, **kw):
+        seen.append(kw.get("tile_size"))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(splatting, "render", spy)  # what gaussians.model.render calls
+    views = load_views(tiny_room)
+    g = random_points(300, 0, rooms=rooms(tiny_room))
+    tr = Trainer(g, views, small_config(iterations=3, extent=scene_extent(g.means), tile_size=8, lambda_coverage=0.1))
+    tr.train()
+    tr.mean_psnr()
+    assert len(seen) >= 3 + 1 + len(views) and set(seen) == {8}
