@@ -200,8 +200,8 @@ def _mock_launches(dtype_name: str, H: int, W: int, ts: int, N: int = 300_000):
         params = [Mock(f.dtype, [N, c]) for c in (3, 4, 3, 1, 3, 45)]
         out.append(("adam", adam_triton.adam_launch([(p, p, p, p, 1e-3) for p in params], 10, (0.9, 0.999), 1e-15, f),
                     None))
-    if dtype_name == "float32":  # integer only: the same kernel for every working dtype
-        out.append(("emit pairs", bin_triton.emit_launch(i32, i64, i32, i32, i32, 1 << 22, ts, W // ts, N), None))
+    # the pair writer with its tile test, in the render's dtype
+    out.append(("emit pairs", bin_triton.emit_launch(i32, i64, i32, i32, i32, 1 << 22, ts, W // ts, N, f, (f, f)), None))
     return out
 
 

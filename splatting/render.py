@@ -149,7 +149,7 @@ def render(
         packed, ints, visible, means2d = project_gaussians(
             means, quats.to(dtype), scales.to(dtype), opacities.to(dtype), colors, viewmat, camera, eps2d, near,
             sh_degree, ts, _color_fn)
-        toff, tlist, _ = bin_gaussians(ints, H, W, ts)
+        toff, tlist, _ = bin_gaussians(ints, H, W, ts, packed=packed.detach(), camera=camera)
         if bg is not None and not bg.requires_grad:  # composited in the kernel (a blend outside costs 6 passes)
             color, depth, alpha = TritonRaster.apply(packed, dirs, toff, tlist, H, W, ts, bg)
             bg = None

@@ -15,10 +15,10 @@ def _row(tile=None, **kw):
 
 def test_the_table_has_a_row_per_tile_size_and_reads_results_from_before_the_column():
     result = {"machine": {"gpu": "G", "torch": "t", "cuda": "c", "triton": "x"}, "repeats": 10, "cubemap": [],
-              "render": [_row(8, forward_s=0.001), _row(16), _row(),
+              "render": [_row(8, forward_s=0.001, box_pairs=1_685_852, walked_pairs=1_400_000), _row(16), _row(),
                          {"height": 512, "width": 1024, "gaussians": 1_000_000, "backend": "torch", "skipped": "slow"}]}
     lines = [line for line in to_markdown(result).splitlines() if line.startswith("| 512×1024")]
-    assert lines[0].startswith("| 512×1024 | 300,000 | cuda | 8 | 1.00 | 3.70 |")
-    assert lines[1].startswith("| 512×1024 | 300,000 | cuda | 16 | 1.39 | 3.70 |")
+    assert lines[0].startswith("| 512×1024 | 300,000 | cuda | 8 | 1,400,000 / 1,685,852 | 1.00 | 3.70 |")
+    assert lines[1].startswith("| 512×1024 | 300,000 | cuda | 16 | – | 1.39 | 3.70 |")
     assert lines[2] == lines[1]  # no tile_size recorded: the renderer's default
     assert lines[3].count("|") == lines[0].count("|") and "slow" in lines[3]

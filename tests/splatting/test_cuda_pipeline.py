@@ -38,6 +38,7 @@ def _count_render(height, run_kernels, monkeypatch):
     vm = eye(torch.float32).to(DEVICE)
     render_module._pixel_dirs(cam, torch.float32, DEVICE)  # the cached per-camera directions
     bin_triton._tile_ids(_ntiles(cam), DEVICE)  # the cached tile ids: steady state, whatever ran before
+    bin_triton.tile_corners(cam, render_module.DEFAULT_TILE, torch.float32, DEVICE)  # and the tile test's tables
     monkeypatch.setattr(bin_triton, "_CAPACITIES", {})  # a dry run's pair count must not size later renders
     bin_triton.capacity_for(DEVICE).reserve(1 << 12, 4)  # sized: the first render's one sync is not counted
     with DispatchCounter(run_kernels=run_kernels) as counter:

@@ -14,7 +14,9 @@ from splatting.kernel_report import last_line_compiled, report_in_subprocess  # 
 # the backward holds 11 per-pixel values for 8 pixels per thread, so it may use the whole 255.
 # The projection's backward walks ~150 per-Gaussian values back through the forward; it runs once
 # per Gaussian (no pixel loop), so occupancy matters less than spills: the whole 255, no spills.
-REG_BUDGET = {"forward": 128, "backward": 255, "backward + depth, alpha": 255, "project (RGB)": 128, "project (SH 3)": 128, "emit pairs": 64,
+# The pair writer holds a splat's 15 packed values for its tile test: 56 registers in float32,
+# 114 in float64 (two a value; the tests' dtype).
+REG_BUDGET = {"forward": 128, "backward": 255, "backward + depth, alpha": 255, "project (RGB)": 128, "project (SH 3)": 128, "emit pairs": 128,
               "project backward (RGB)": 255, "project backward (SH 3)": 255,
               # the training loss's image passes (2 pixels a thread, 11 taps of 5 moments in flight)
               "loss: moments": 192, "loss: SSIM": 192, "loss: sum": 64, "loss backward: blur": 64,
@@ -35,7 +37,6 @@ def rows():
 def test_every_kernel_compiles_for_both_archs(rows):
     seen = {(r.kernel, r.arch, r.dtype) for r in rows}
     expected = {(k, a, d) for k in REG_BUDGET for a in (80, 90) for d in ("float32", "float64")}
-    expected -= {("emit pairs", a, "float64") for a in (80, 90)}  # integer only: compiled once
     # the projection's gradient: the float32 kernel training runs (its float64 twin runs in the tests)
     expected -= {(k, a, "float64") for k in ("project backward (RGB)", "project backward (SH 3)") for a in (80, 90)}
     expected -= {(k, a, "float64") for k in LOSS_KERNELS for a in (80, 90)}  # training's float32 loss
