@@ -40,6 +40,7 @@ from gaussians.objective import TrainingObjective
 from gaussians.optim import Adam, expon_lr
 from gaussians.strategy import DensifyStrategy
 from gaussians.view_jitter import TurnMaps, random_turn, turn_view_images
+from splatting import compile_ahead
 
 __all__ = ["TrainConfig", "TrainView", "Trainer", "scene_extent", "CHECKPOINT_NAME"]
 
@@ -360,6 +361,7 @@ class Trainer:
         KeyboardInterrupt (saved at the last completed iteration, then re-raised)."""
         until = self.cfg.iterations if until is None else min(until, self.cfg.iterations)
         t_last = time.perf_counter()
+        compile_ahead.sh_degrees(*self.sh_degrees_ahead())
         try:
             while self.iteration < until:
                 info = self.step()
@@ -380,6 +382,16 @@ class Trainer:
             if checkpoint_path is not None and self._consistent():
                 self.save_checkpoint(checkpoint_path)
             raise
+        finally:
+            compile_ahead.sh_degrees()
+
+    def sh_degrees_ahead(self) -> tuple[int, ...]:
+        """The SH degrees this run will still raise to, on a GPU: each needs new projection
+        kernels, which splatting.compile_ahead compiles beside the first iterations (none on the
+        CPU, whose kernel is compiled once)."""
+        if self.device.type != "cuda" or self.cfg.optim.sh_degree_every <= 0:
+            return ()
+        return tuple(range(self.active_sh + 1, min(self.cfg.optim.sh_degree, self.g.sh_degree) + 1))
 
     def _consistent(self) -> bool:
         return not self._in_step

@@ -25,6 +25,7 @@ import math
 
 import torch
 
+from . import compile_ahead
 from .cameras import EquirectCamera
 from .devices import cdiv
 from .optional_triton import tl, triton  # raster_triton reports a missing triton
@@ -467,7 +468,7 @@ class TritonProject(torch.autograd.Function):
                 means.contiguous(), quats.contiguous(), scales.contiguous(), opac.contiguous(), colors.contiguous(),
                 viewmat.contiguous(), camvec, packed, ints, visible, means2d.detach(), H, W, ts,
                 isinstance(camera, EquirectCamera), deg, K)
-            kernel[grid](*args, **options)
+            compile_ahead.launch(kernel, grid, args, options)  # with the later SH degrees' compiles, if asked
         ctx.save_for_backward(means, quats, scales, opac, colors, viewmat, visible)
         ctx.setup = (camera, eps2d, near, sh_degree, color_fn_factory)
         ctx.mark_non_differentiable(ints, visible)

@@ -25,6 +25,7 @@ import math
 
 import torch
 
+from . import compile_ahead
 from .devices import cdiv
 from .project import PACK
 from .project_triton import BLOCK, _camera_vector, triton
@@ -505,7 +506,7 @@ def project_backward(means, quats, scales, colors, viewmat, visible, g_packed, c
             means.contiguous(), quats.contiguous(), scales.contiguous(), colors.contiguous(), viewmat.contiguous(),
             camvec, visible, g_packed.contiguous(), (g_means, g_quats, g_scales, g_opac, g_colors, g_m2d, g_view),
             isinstance(camera, EquirectCamera), deg, K)
-        kernel[grid](*args, **options)
+        compile_ahead.launch(kernel, grid, args, options)  # with the later SH degrees' compiles, if asked
         g_viewmat = g_view.sum(0).reshape(4, 4) if view_grad else None
     else:
         g_viewmat = torch.zeros(4, 4, dtype=dtype, device=device) if view_grad else None
