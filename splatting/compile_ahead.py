@@ -4,9 +4,9 @@ Training raises the SH degree every ``sh_degree_every`` iterations (0 → 3), an
 a variant of the projection's forward and backward kernels (their ``SH_DEGREE`` constexpr),
 compiled where it is first launched. On the H200's first run that stopped training for seconds
 at each raise (the SH 3 backward alone compiles in ~8 s): 70, 53 and 42 it/s over the first
-3,000 iterations against 170 after (docs/gpu.md). Triton releases the GIL for most of a compile
-(a Python thread kept ~60 % of its pace beside one, measured on this project's CI machine), so
-the compiles can run beside training instead.
+3,000 iterations against 170 after (docs/gpu.md). Triton leaves the GIL free while it compiles
+(a Python thread kept its pace beside a 16 s compile, docs/gpu.md), so the compiles can run
+beside training instead.
 
 :func:`sh_degrees` names the degrees a run will reach. The first launch of each projection kernel
 then also starts a thread that compiles its other degrees with Triton's ``warmup`` (compile and
