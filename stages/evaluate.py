@@ -48,7 +48,7 @@ class Params(StageParams):
     )
     backend: str | None = Field(default=None, description="Splatting backend (None: the renderer's default).")
     tile_size: int = Field(
-        default=DEFAULT_TILE, ge=1, le=32,
+        default=DEFAULT_TILE, ge=1, le=32, json_schema_extra={"pixels": "square"},
         description="The rasteriser's square tile in pixels: speed only, the images do not depend on it.")
     device: Literal["auto", "cpu", "cuda"] = Field(
         default="auto",
