@@ -52,8 +52,10 @@ def bench_render(
                 tiles["tile_sizes"] = tuple(int(t) for t in tile_sizes.split(","))
             except ValueError:
                 raise PanoError("--tile-sizes", f"must be integers separated by commas, got {tile_sizes!r}") from None
-            if not all(1 <= t <= 32 for t in tiles["tile_sizes"]):
-                raise PanoError("--tile-sizes", f"each must be 1..32, got {tile_sizes!r}")
+            from splatting.render import MAX_TILE
+
+            if not all(1 <= t <= MAX_TILE for t in tiles["tile_sizes"]):
+                raise PanoError("--tile-sizes", f"each must be 1..{MAX_TILE}, got {tile_sizes!r}")
         bench_gpu.run_gpu_render_bench(out_json=out / "bench_render_gpu.json", out_md=out / "bench_render_gpu.md",
                                        **tiles)
         return

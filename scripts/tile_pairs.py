@@ -25,51 +25,27 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from splatting import EquirectCamera, bin_triton  # noqa: E402
 from splatting.bench import indoor_scene  # noqa: E402
-from splatting.project import C_MIN  # noqa: E402
 from splatting.project_triton import project_gaussians  # noqa: E402
-from splatting.render import _color_fn, _pixel_dirs  # noqa: E402
+from splatting.reference import tiles_reached  # noqa: E402
+from splatting.render import DEFAULT_EPS2D, _color_fn  # noqa: E402
 
 DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
-
-
-def reached_share(toff, tlist, packed, camera, ts, chunk=100_000) -> float:
-    """Share of the pairs whose tile holds a pixel where the splat passes its cut-off."""
-    H, W = camera.height, camera.width
-    ntx, nty = (W + ts - 1) // ts, (H + ts - 1) // ts
-    dirs = torch.zeros(nty * ts, ntx * ts, 3, dtype=torch.float64)
-    dirs[:H, :W] = _pixel_dirs(camera, torch.float64, "cpu").reshape(H, W, 3)
-    valid = torch.zeros(nty * ts, ntx * ts, dtype=torch.bool)
-    valid[:H, :W] = True
-    tdirs = dirs.reshape(nty, ts, ntx, ts, 3).permute(0, 2, 1, 3, 4).reshape(ntx * nty, ts * ts, 3)
-    tvalid = valid.reshape(nty, ts, ntx, ts).permute(0, 2, 1, 3).reshape(ntx * nty, ts * ts)
-    counts = (toff[1:] - toff[:-1]).long()
-    tiles = torch.repeat_interleave(torch.arange(counts.shape[0]), counts)
-    gids = tlist[: int(toff[-1])].long()
-    P = packed.double()
-    reached = 0
-    for s in range(0, gids.shape[0], chunk):
-        r, t = P[gids[s:s + chunk]], tiles[s:s + chunk]
-        d = tdirs[t]
-        c = torch.einsum("bk,bpk->bp", r[:, 6:9], d)
-        ic = torch.where(c > C_MIN, 1 / c.clamp_min(1e-300), torch.zeros_like(c))
-        u = torch.einsum("bk,bpk->bp", r[:, 0:3], d) * ic - r[:, 9:10]
-        v = torch.einsum("bk,bpk->bp", r[:, 3:6], d) * ic - r[:, 10:11]
-        q = 0.5 * r[:, 11:12] * u * u + r[:, 12:13] * u * v + 0.5 * r[:, 13:14] * v * v
-        reached += int(((c > C_MIN) & (q <= r[:, 19:20]) & tvalid[t]).any(1).sum())
-    return reached / max(gids.shape[0], 1)
 
 
 def count(scene, camera, viewmat, ts):
     """(pairs in the boxes, share reaching a pixel, pairs walked after the tile test)."""
     with torch.no_grad():
-        packed, ints, _, _ = project_gaussians(*scene, viewmat, camera, 0.3, 0.05, None, ts, _color_fn)
+        packed, ints, _, _ = project_gaussians(*scene, viewmat, camera, DEFAULT_EPS2D, 0.05, None, ts, _color_fn)
         walked = []
         for cull in (False, True):
             cap = bin_triton.PairCapacity(initial=1 << 23)
             toff, tlist, total = bin_triton.bin_gaussians(ints, camera.height, camera.width, ts, capacity=cap,
                                                           packed=packed if cull else None, camera=camera)
             walked.append((toff.cpu(), tlist.cpu()))
-        share = reached_share(*walked[0], packed.cpu(), camera, ts)
+        toff, tlist = walked[0]
+        counts = (toff[1:] - toff[:-1]).long()
+        tiles = torch.repeat_interleave(torch.arange(counts.shape[0]), counts)
+        share = float(tiles_reached(tiles, tlist[: int(toff[-1])], packed, camera, ts).float().mean())
     return int(walked[0][0][-1]), share, int(walked[1][0][-1])
 
 

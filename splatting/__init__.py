@@ -17,7 +17,7 @@ from .cameras import (
     cubemap_faces,
     cubemap_rig,
 )
-from .render import DEFAULT_TILE, RenderOutput, render
+from .render import DEFAULT_TILE, MAX_TILE, RenderOutput, render
 from .stitch import render_cubemap, render_stitched, stitch, stitch_table
 from .sh import eval_sh, num_sh_bases
 
@@ -29,6 +29,7 @@ __all__ = [
     "stitch_table",
     "RenderOutput",
     "DEFAULT_TILE",
+    "MAX_TILE",
     "EquirectCamera",
     "PinholeCamera",
     "cubemap_faces",

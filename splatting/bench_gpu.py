@@ -59,10 +59,10 @@ def walked_pairs(scene, cam, viewmat, tile_size):
     """(pairs of the splats' pixel boxes, pairs the ``cuda`` rasteriser walks after the tile test)."""
     from .bin_triton import PairCapacity, bin_gaussians
     from .project_triton import project_gaussians
-    from .render import _color_fn
+    from .render import DEFAULT_EPS2D, _color_fn
 
-    with torch.no_grad():
-        packed, ints, _, _ = project_gaussians(*scene, viewmat, cam, 0.3, 0.05, None, tile_size, _color_fn)
+    with torch.no_grad():  # as render() with its defaults, which bench_one times
+        packed, ints, _, _ = project_gaussians(*scene, viewmat, cam, DEFAULT_EPS2D, 0.05, None, tile_size, _color_fn)
         toff, _, total = bin_gaussians(ints, cam.height, cam.width, tile_size, capacity=PairCapacity(initial=1 << 20),
                                        packed=packed, camera=cam)
     return int(total), int(toff[-1])

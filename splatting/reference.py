@@ -4,6 +4,8 @@
   autograd, no tiles, no bounding boxes: the rasterisers must match it.
 * :func:`ray_max_alpha` is the *exact* ray–Gaussian evaluation (the maximum of
   the 3D Gaussian along each ray) that the tangent-plane splat approximates.
+* :func:`tiles_reached` tests every pixel of a (tile, Gaussian) pair: the tile test's
+  (splatting/bin_triton.py) reference.
 """
 
 from __future__ import annotations
@@ -63,3 +65,31 @@ def ray_max_alpha(means_cam, quats, scales, opacities, dirs, Rv=None):
     s = torch.clamp(dm / dd, min=0.0)  # only in front of the camera
     m2 = mm - 2 * s * dm + s * s * dd
     return opacities[None] * torch.exp(-0.5 * m2)
+
+
+def tiles_reached(tiles: torch.Tensor, gids: torch.Tensor, packed: torch.Tensor, camera, ts: int,
+                  slack: float = 0.0, chunk: int = 100_000) -> torch.Tensor:
+    """[pairs] bool: whether tile ``tiles[k]`` (row-major, ``ts``-pixel tiles) holds a pixel centre
+    where Gaussian ``gids[k]`` (a row of ``packed``) passes its cut-off, ½ pᵀQp ≤ τ·(1 + slack),
+    every pixel tested in float64 (a positive slack is stricter on a test that must keep the tile)."""
+    H, W = int(camera.height), int(camera.width)
+    ntx, nty = (W + ts - 1) // ts, (H + ts - 1) // ts
+    dirs = torch.zeros(nty * ts, ntx * ts, 3, dtype=torch.float64)
+    dirs[:H, :W] = camera.pixel_dirs(torch.float64)
+    inside = torch.zeros(nty * ts, ntx * ts, dtype=torch.bool)
+    inside[:H, :W] = True
+    tdirs = dirs.reshape(nty, ts, ntx, ts, 3).permute(0, 2, 1, 3, 4).reshape(ntx * nty, ts * ts, 3)
+    tinside = inside.reshape(nty, ts, ntx, ts).permute(0, 2, 1, 3).reshape(ntx * nty, ts * ts)
+    P = packed.detach().double().cpu()
+    tiles, gids = tiles.long().cpu(), gids.long().cpu()
+    out = torch.zeros(tiles.shape[0], dtype=torch.bool)
+    for s in range(0, tiles.shape[0], chunk):
+        r, t = P[gids[s:s + chunk]], tiles[s:s + chunk]
+        d = tdirs[t]
+        c = torch.einsum("bk,bpk->bp", r[:, 6:9], d)
+        ic = torch.where(c > C_MIN, 1 / c.clamp_min(1e-300), torch.zeros_like(c))
+        u = torch.einsum("bk,bpk->bp", r[:, 0:3], d) * ic - r[:, 9:10]
+        v = torch.einsum("bk,bpk->bp", r[:, 3:6], d) * ic - r[:, 10:11]
+        q = 0.5 * r[:, 11:12] * u * u + r[:, 12:13] * u * v + 0.5 * r[:, 13:14] * v * v
+        out[s:s + chunk] = ((c > C_MIN) & (q <= r[:, 19:20] * (1 + slack)) & tinside[t]).any(1)
+    return out

@@ -18,6 +18,7 @@ from .sh import eval_sh, num_sh_bases
 __all__ = ["render", "RenderOutput"]
 
 DEFAULT_TILE = 16
+MAX_TILE = 32  # the C++ kernel's MAX_TILE (splatting/csrc): tile sizes are 1..MAX_TILE
 #: 3DGS's screen-space dilation of every footprint, in squared pixels
 DEFAULT_EPS2D = 0.3
 

@@ -33,7 +33,7 @@ from runtime.stage import Loaded, StageContext
 from schemas.evaluate import EvaluateOutput, ViewMetrics
 from schemas.scene import Scene, View
 from schemas.stage_params import NAMES_FILE, StageParams
-from splatting import DEFAULT_TILE
+from splatting import DEFAULT_TILE, MAX_TILE
 
 Output = EvaluateOutput
 
@@ -48,7 +48,7 @@ class Params(StageParams):
     )
     backend: str | None = Field(default=None, description="Splatting backend (None: the renderer's default).")
     tile_size: int = Field(
-        default=DEFAULT_TILE, ge=1, le=32, json_schema_extra={"pixels": "square"},
+        default=DEFAULT_TILE, ge=1, le=MAX_TILE, json_schema_extra={"pixels": "square"},
         description="The rasteriser's square tile in pixels: speed only, the images do not depend on it.")
     device: Literal["auto", "cpu", "cuda"] = Field(
         default="auto",

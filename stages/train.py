@@ -217,7 +217,7 @@ class Params(StageParams):
     backend: Literal["cpp", "cuda", "torch"] | None = Field(
         default=None, description="splatting backend; None = its default for the device (cpp on CPU, cuda on CUDA).")
     tile_size: int = Field(
-        default=splatting.DEFAULT_TILE, ge=1, le=32, json_schema_extra={"pixels": "square"},
+        default=splatting.DEFAULT_TILE, ge=1, le=splatting.MAX_TILE, json_schema_extra={"pixels": "square"},
         description="The rasteriser's square tile in pixels: speed only, the images do not depend on it "
                     "(docs/gpu.md, tile size).")
     device: Literal["auto", "cpu", "cuda"] = Field(

@@ -14,8 +14,8 @@ pytest.importorskip("triton")
 
 import splatting  # noqa: E402
 from splatting import bin_triton  # noqa: E402
-from splatting.project import C_MIN  # noqa: E402
 from splatting.project_triton import project_gaussians  # noqa: E402
+from splatting.reference import tiles_reached  # noqa: E402
 from splatting.render import _color_fn, _pixel_dirs  # noqa: E402
 
 pytestmark = pytest.mark.cuda
@@ -50,23 +50,12 @@ def _pairs(toff, tlist):
 def _reached(pairs, packed, camera, ts):
     """The pairs whose tile holds a pixel where the splat passes its cut-off, from every pixel
     (float64, with a relative slack of 1e-5 on τ: stricter than the float32 rasteriser)."""
-    H, W = int(camera.height), int(camera.width)
-    ntx = (W + ts - 1) // ts
-    dirs = _pixel_dirs(camera, torch.float64, "cpu").reshape(H, W, 3)
-    P = packed.double().cpu()
-    out = set()
-    for tile, g in pairs:
-        tr, tc = divmod(tile, ntx)
-        d = dirs[tr * ts:(tr + 1) * ts, tc * ts:(tc + 1) * ts].reshape(-1, 3)
-        r = P[g]
-        c = d @ r[6:9]
-        ic = torch.where(c > C_MIN, 1 / c.clamp_min(1e-300), torch.zeros_like(c))
-        u = (d @ r[0:3]) * ic - r[9]
-        v = (d @ r[3:6]) * ic - r[10]
-        q = 0.5 * r[11] * u * u + r[12] * u * v + 0.5 * r[13] * v * v
-        if bool(((c > C_MIN) & (q <= r[19] * (1 + 1e-5))).any()):
-            out.add((tile, g))
-    return out
+    pairs = sorted(pairs)
+    if not pairs:
+        return set()
+    tiles, gids = torch.tensor(pairs).T
+    reached = tiles_reached(tiles, gids, packed, camera, ts, slack=1e-5)
+    return {p for p, hit in zip(pairs, reached.tolist()) if hit}
 
 
 def _bin(scene, camera, viewmat, ts, eps2d, cull):
