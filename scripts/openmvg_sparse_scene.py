@@ -21,7 +21,8 @@ the run folder whose upstream stages are shared), so the poses stage is not reru
 `diagnose SCENE RUN...` measures the study's run folders on their held-out views: holes (accumulated
 alpha), brightness (mean render against ground truth per channel, colour-fit PSNR, the learned
 appearance transforms' mean), and where the error sits (near or far from the training cameras;
-ceiling, walls and floor by latitude band), then prints mean ± std per variant over the seeds:
+ceiling, walls and floor by latitude band; per band also the render's local detail in SSIM's window
+over the ground truth's, "texture"), then prints mean ± std per variant over the seeds:
 
     PYTHONPATH=$PWD .venv/bin/python scripts/openmvg_sparse_scene.py diagnose /tmp/i39/flat3 \
         /tmp/i39/s128-runs/{crops,360}-s{0,1,2} [--per-view]
@@ -96,6 +97,17 @@ def _psnr(mse: float) -> float:
     return float(-10.0 * np.log10(max(mse, 1e-12)))
 
 
+def local_std(image: np.ndarray) -> np.ndarray:
+    """[H,W,C] standard deviation in SSIM's window (Gaussian, 11 taps, sigma 1.5) around each pixel:
+    the variance whose uncorrelated part SSIM's structure term charges."""
+    import cv2
+
+    k = cv2.getGaussianKernel(11, 1.5)
+    image = image.astype(np.float32)
+    mean = cv2.sepFilter2D(image, -1, k, k)
+    return np.sqrt(np.clip(cv2.sepFilter2D(image * image, -1, k, k) - mean * mean, 0.0, None))
+
+
 def diagnose_run(scene, run: Path) -> list[dict]:
     """Per held-out view of `run` (a study run folder: train + evaluate): the render's accumulated
     alpha (mean, and the fraction below 0.5: holes), its mean colour against the ground truth's per
@@ -160,6 +172,7 @@ def diagnose_run(scene, run: Path) -> list[dict]:
         fitted = M.colour_fit(image, gt, mask)
         filled = np.clip(r.image + (1.0 - r.alpha[..., None]) * train_mean, 0.0, 1.0)
         err, err_fit = ((image - gt) ** 2).mean(-1), ((fitted - gt) ** 2).mean(-1)
+        std_render, std_gt = local_std(image).mean(-1), local_std(gt).mean(-1)
         dark = gt.mean(-1) < 0.2
         row = {
             "view": v.name,
@@ -198,6 +211,9 @@ def diagnose_run(scene, run: Path) -> list[dict]:
                 )
                 row[f"{band}_holes"] = float((r.alpha[m] < 0.5).mean())
                 row[f"{band}_ssim"] = M.ssim(image, gt, mask=m)  # the band's pixels, the rest zeroed
+                # texture: the render's local detail over the ground truth's (1 = as much; above 1 with
+                # SSIM falling, detail that is not where the ground truth has it)
+                row[f"{band}_texture"] = float(std_render[m].mean() / max(std_gt[m].mean(), 1e-12))
         rows.append(row)
     depth = layout_depth_ratios(done, run, g, tdata, h, w)  # one figure per run: on every row
     return [{**row, **depth} for row in rows]
@@ -285,6 +301,9 @@ TABLE_KEYS = (
     "floor_ssim",
     "walls_holes",
     "floor_holes",
+    "ceiling_texture",
+    "walls_texture",
+    "floor_texture",
     "ceiling_depth_ratio",
     "walls_depth_ratio",
     "floor_depth_ratio",
@@ -328,7 +347,7 @@ def diagnose(scene_dir: Path, runs: list[Path], per_view: bool) -> None:
         cells = []
         for ss in by.values():
             vals = [x[k] for x in ss if x.get(k) is not None]
-            d = 3 if "alpha" in k or "holes" in k or "ssim" in k or "ratio" in k else 2
+            d = 3 if any(w in k for w in ("alpha", "holes", "ssim", "ratio", "texture")) else 2
             cells.append(
                 "—"
                 if not vals
