@@ -3,23 +3,13 @@ deviation in SSIM's window, checked against closed forms."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[2]
-
-
-def _script():
-    spec = importlib.util.spec_from_file_location("openmvg_sparse_scene", REPO / "scripts" / "openmvg_sparse_scene.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from tests.scripttools import load_script
 
 
 def test_local_std_is_zero_on_flat_and_the_amplitude_on_fine_stripes():
-    local_std = _script().local_std
+    local_std = load_script("openmvg_sparse_scene").local_std
     flat = np.full((40, 60, 3), 0.37, np.float32)
     assert np.abs(local_std(flat)).max() < 1e-3
     # stripes of ±a one pixel wide: any window's mean is ~0.5 and its variance ~a² (away from the

@@ -4,7 +4,6 @@ the pipeline reads and that holds the held-out camera inside the room."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -13,6 +12,7 @@ import pytest
 
 from layoutnet.formats import read_layout
 from schemas.scene_loader import load_scene
+from tests.scripttools import load_script
 
 REPO = Path(__file__).resolve().parents[2]
 ZIND = REPO.parent / "shared" / "data" / "zind_pair"
@@ -20,10 +20,7 @@ pytestmark = pytest.mark.skipif(not (ZIND / "scene.json").is_file(), reason="sha
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("zind_pair_scenes", REPO / "scripts" / "zind_pair_scenes.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("zind_pair_scenes")
 
 
 def test_dataset_frame_maps_pano2_onto_its_pose():
