@@ -293,7 +293,7 @@ def features(pano: Panorama, options: UprightPairOptions) -> tuple[np.ndarray, n
     bgr = cv2.cvtColor(pano.rgb, cv2.COLOR_RGB2BGR)
     for (image, mask), pano_from_cam in zip(rig.render(bgr, pano.valid), rig.pano_from_cams):
         keypoints, desc = sift.detectAndCompute(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), mask)
-        if desc is None:
+        if desc is None or not keypoints:  # OpenCV 4 gives None for a view without features, 5 an empty array
             continue
         # OpenCV puts pixel centres at integers, the rig's rays at +0.5 (sfm.rig)
         uv = (np.array([k.pt for k in keypoints]) + 0.5 - rig.size / 2.0) / rig.focal

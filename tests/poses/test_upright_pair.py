@@ -54,3 +54,23 @@ def test_epipolar_error_is_the_angle_to_the_plane_and_cheirality():
     tilted = _unit(np.array([1.0, np.tan(np.radians(2.0)), 0.0]))
     error, _ = epipolar_error(b1, tilted, c)
     assert abs(np.degrees(error) - 2.0) < 1e-6
+
+
+def test_features_skip_views_without_any_and_keep_the_rest():
+    """A panorama textured only around one direction: most of the rig's perspective views find no
+    feature (OpenCV 5 returns an empty descriptor array there, 4 returned None), and every bearing
+    found lies in the textured part."""
+    from sfm.records import Panorama
+    from sfm.upright_pair import UprightPairOptions, features
+
+    h, w = 128, 256
+    rng = np.random.default_rng(0)
+    rgb = np.full((h, w, 3), 128, np.uint8)
+    cols = slice(w // 2 - 24, w // 2 + 24)  # ±34° of longitude around the image centre (+z)
+    rows = slice(h // 2 - 24, h // 2 + 24)
+    blocks = rng.integers(0, 256, (6, 6, 3), dtype=np.uint8)
+    rgb[rows, cols] = np.kron(blocks, np.ones((8, 8, 1), np.uint8))
+    dirs, descs = features(Panorama("textured_front", rgb), UprightPairOptions())
+    assert len(dirs) == len(descs) > 0
+    np.testing.assert_allclose(np.linalg.norm(dirs, axis=1), 1.0, rtol=1e-6)
+    assert (dirs[:, 2] > 0.5).all()  # within ~60° of +z, where the texture is
