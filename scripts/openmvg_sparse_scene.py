@@ -98,11 +98,13 @@ def _psnr(mse: float) -> float:
 
 
 def local_std(image: np.ndarray) -> np.ndarray:
-    """[H,W,C] standard deviation in SSIM's window (Gaussian, 11 taps, sigma 1.5) around each pixel:
-    the variance whose uncorrelated part SSIM's structure term charges."""
+    """[H,W,C] standard deviation in SSIM's window (evaluation.metrics.gaussian_window) around each
+    pixel: the variance whose uncorrelated part SSIM's structure term charges."""
     import cv2
 
-    k = cv2.getGaussianKernel(11, 1.5)
+    from evaluation.metrics import gaussian_window
+
+    k = gaussian_window()
     image = image.astype(np.float32)
     mean = cv2.sepFilter2D(image, -1, k, k)
     return np.sqrt(np.clip(cv2.sepFilter2D(image * image, -1, k, k) - mean * mean, 0.0, None))
