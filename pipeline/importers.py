@@ -237,10 +237,13 @@ def _measured_heights(heights: np.ndarray) -> list[float | None]:
 
 
 def _write_scene(out: Path, manifest: SceneManifest, copies: list[tuple[Path, str]],
-                 arrays: dict[str, np.ndarray], extra: Callable[[Path], None] | None = None) -> None:
+                 arrays: dict[str, np.ndarray], command: str, extra: Callable[[Path], None] | None = None) -> None:
     """The scene folder at `out`, written whole or not at all (runfs.fsutil.atomic_folder):
     `copies` are (source file, path in the scene), `arrays` .npy files by path in the scene,
-    `extra` writes anything else into the temporary folder."""
+    `extra` writes anything else into the temporary folder. The scene's pano-pipe.yaml starts with
+    the settings for captured panoramas, saying which `command` wrote it."""
+    from pipeline.settings import SCENE_CONFIG, real_capture_settings_text
+
     try:
         with atomic_folder(out) as tmp:
             for src, rel in copies:
@@ -254,6 +257,7 @@ def _write_scene(out: Path, manifest: SceneManifest, copies: list[tuple[Path, st
                 np.save(tmp / rel, values)
             if extra is not None:
                 extra(tmp)
+            (tmp / SCENE_CONFIG).write_text(real_capture_settings_text(command))
             (tmp / "scene.json").write_text(manifest.model_dump_json(indent=2, exclude_none=True))
             # OUT was checked before; refuse to replace it if something was written there meanwhile.
             if out.is_dir() and any(out.iterdir()):
@@ -369,7 +373,7 @@ def import_nerfstudio(
     except (OSError, RuntimeError) as e:
         why = getattr(e, "strerror", None) or str(e)
         raise PanoError(out, f"cannot use as the output folder: {why}") from None
-    _write_scene(out, manifest, [(src, view.image) for src, view in zip(sources, views)], arrays)
+    _write_scene(out, manifest, [(src, view.image) for src, view in zip(sources, views)], arrays, "import-nerfstudio")
     return out / "scene.json"
 
 
@@ -544,7 +548,8 @@ def import_colmap(
         (tmp / SPARSE_POINTS).parent.mkdir()
         write_ply(tmp / SPARSE_POINTS, world_points, colors, np.zeros_like(world_points))
 
-    _write_scene(out, manifest, [(src, view.image) for src, view in zip(sources, views)], {}, write_points)
+    _write_scene(out, manifest, [(src, view.image) for src, view in zip(sources, views)], {}, "import-colmap",
+                 write_points)
     return out / "scene.json"
 
 

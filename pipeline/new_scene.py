@@ -73,7 +73,7 @@ def new_scene(out: Path, panoramas: list[Path], *, link: bool = False, test_ever
             raise PanoError(out, f"is or holds {folder}, the folder of the panoramas; choose a new folder")
     _check_out(out, {})
     if not link:
-        _write_scene(out, manifest, [(src, view.image) for src, view in zip(sources, views)], {})
+        _write_scene(out, manifest, [(src, view.image) for src, view in zip(sources, views)], {}, "new")
         return out / "scene.json"
 
     def hard_links(tmp: Path) -> None:
@@ -85,7 +85,7 @@ def new_scene(out: Path, panoramas: list[Path], *, link: bool = False, test_ever
                 raise PanoError(src, f"cannot hard-link into {out} ({e.strerror or e}; another file "
                                      "system?); leave out --link to copy the panoramas") from None
 
-    _write_scene(out, manifest, [], {}, extra=hard_links)
+    _write_scene(out, manifest, [], {}, "new", extra=hard_links)
     return out / "scene.json"
 
 
@@ -112,12 +112,15 @@ def new_command(
     """Make a scene folder from panoramas without poses (the poses stage recovers them)."""
     from rich.markup import escape
 
+    from pipeline.settings import SCENE_CONFIG
+
     path = new_scene(scene, panoramas, link=link, test_every=test_every, camera_height=camera_height,
                      nadir_mask_deg=nadir_mask_deg, name=name)
     import json
 
     n_test = sum(v["split"] == "test" for v in json.loads(path.read_text())["views"])
     console.print(escape(f"wrote {path} ({len(panoramas)} views: {len(panoramas) - n_test} train, {n_test} test; "
-                         f"images {'linked' if link else 'copied'}; nadir_mask_deg {nadir_mask_deg:g})"),
+                         f"images {'linked' if link else 'copied'}; nadir_mask_deg {nadir_mask_deg:g}; "
+                         f"the settings for captured panoramas in {path.parent / SCENE_CONFIG})"),
                   soft_wrap=True)
     console.print(escape(f"next: pano-pipe run all {shlex.quote(str(scene))}"), soft_wrap=True)

@@ -13,10 +13,31 @@ import os
 from pathlib import Path
 
 from runfs.errors import PanoError
-from runfs.yamlfile import parse_yaml, read_yaml
+from runfs.yamlfile import parse_yaml, read_yaml, yaml_scalar
 
 #: The scene's own stage parameters (DESIGN.md): below --config and --set.
 SCENE_CONFIG = "pano-pipe.yaml"
+
+#: What a scene folder made from captured panoramas (`new`, `import-nerfstudio`, `import-colmap`)
+#: starts with in its pano-pipe.yaml, {stage: {param: (value, why)}}; measured on real and simulated
+#: sparse captures in docs/training.md ("Settings for real captures").
+REAL_CAPTURE_SETTINGS: dict[str, dict[str, tuple[object, str]]] = {
+    "train": {
+        "appearance": (True, "learn each panorama's exposure and white balance"),
+        "random_turn_interp": ("bilinear", "low-pass the turned panoramas, as the crops' resampling does"),
+    },
+}
+
+
+def real_capture_settings_text(command: str) -> str:
+    """REAL_CAPTURE_SETTINGS as the pano-pipe.yaml `command` writes, each setting with its reason."""
+    lines = [f"# Settings for captured panoramas, written by `pano-pipe {command}` (docs/training.md,",
+             '# "Settings for real captures"). --config and --set override them; edit or delete freely.']
+    for stage, params in REAL_CAPTURE_SETTINGS.items():
+        lines.append(f"{stage}:")
+        width = max(len(f"{param}: {yaml_scalar(value)}") for param, (value, _) in params.items())
+        lines += [f"  {f'{param}: {yaml_scalar(value)}':<{width}}  # {why}" for param, (value, why) in params.items()]
+    return "\n".join(lines) + "\n"
 
 
 def load_config(path: Path | None, overrides: list[str] | None) -> tuple[dict[str, dict], str]:

@@ -81,3 +81,8 @@ def read_yaml(path: Path, what: str = "file", max_bytes: int = MAX_YAML_BYTES):
     except UnicodeDecodeError as e:
         raise PanoError(path, f"not UTF-8 text (byte {e.start})") from None
     return parse_yaml(text, path)
+
+
+def yaml_scalar(value) -> str:
+    """A plain value (bool, number, string, flat list) as YAML writes it on one line."""
+    return yaml.safe_dump(value, default_flow_style=True, width=1 << 16).removesuffix("...\n").strip()

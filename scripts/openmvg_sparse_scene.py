@@ -2,7 +2,9 @@ r"""A sparse real walk-through from ../shared/data/openmvg_flat, for docs/traini
 360-against-crops study (issue 39).
 
 Writes OUT (a scene folder) with `pano-pipe new`'s defaults (pipeline.new_scene.new_scene: the 11
-hand-held THETA panoramas copied, no poses, the 35° nadir cap, no camera height), then makes the
+hand-held THETA panoramas copied, no poses, the 35° nadir cap, no camera height, `new`'s pano-pipe.yaml; the
+studies before docs/training.md's "Settings for real captures" ran without that file: repeat them
+with `--set train.random_turn_interp=bicubic`), then makes the
 split sparse: only the TRAIN panoramas (by default the two ends of the walk and its middle,
 R0010210, R0010215, R0010220) train, every other one is "split": "test". The poses stage places all
 11 whatever the split (docs/poses.md: test views are posed with the others and left out of

@@ -72,6 +72,7 @@ def test_import_writes_valid_scene(tiny_scene, tmp_path):
     import_nerfstudio(tiny_scene / "transforms.json", tmp_path / "imported", test_every=3)
     scene = load_scene(tmp_path / "imported")
     assert [v.split for v in scene.views] == ["train", "train", "test"]
+    assert "pano-pipe import-nerfstudio" in (tmp_path / "imported" / "pano-pipe.yaml").read_text()
     for got, want in zip(scene.views, manifest["views"]):
         np.testing.assert_allclose(got.pose_matrix, want["pose"], atol=1e-12)
 

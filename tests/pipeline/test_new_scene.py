@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from pipeline.settings import REAL_CAPTURE_SETTINGS, SCENE_CONFIG, make_engine
 from schemas.scene_loader import load_scene
 from tests.clitools import invoke
 
@@ -50,6 +51,21 @@ def test_new_links_with_link_and_takes_nadir_and_default_split(tmp_path, photos,
     assert manifest.get("nadir_mask_deg", 0) == 0
     assert all(v["split"] == "train" for v in manifest["views"])  # 4 views, every 8th held out: none
     assert all(os.path.samefile(out / v["image"], src) for src, v in zip(photos, manifest["views"]))
+
+
+def test_new_starts_the_scene_with_the_settings_for_captured_panoramas(tmp_path, photos, capsys):
+    out = tmp_path / "scene"
+    code, stdout, err = invoke(["new", out, *photos], capsys)
+    assert code == 0, err
+    assert SCENE_CONFIG in stdout and "pano-pipe new" in (out / SCENE_CONFIG).read_text()
+    engine = make_engine(out, tmp_path / "run", None, None)
+    for stage, params in REAL_CAPTURE_SETTINGS.items():
+        got, defaults = engine.params_for(stage), type(engine.params_for(stage))()
+        for param, (value, _) in params.items():
+            assert getattr(got, param) == value != getattr(defaults, param), (stage, param)
+    # below --set, as any scene's own settings
+    engine = make_engine(out, tmp_path / "run", None, ["train.random_turn_interp=bicubic"])
+    assert engine.params_for("train").random_turn_interp == "bicubic" and engine.params_for("train").appearance
 
 
 def test_new_makes_clashing_file_names_unique(tmp_path, capsys):
