@@ -167,7 +167,8 @@ def summarise_run(run_dir: Path, results=None) -> dict:
     ran = {r.name: r.outcome for r in results} if results else {}
     return {
         "dir": str(run_dir),
-        **{k: mean.get(k) for k in ("psnr", "psnr_colorfit", "ssim", "ws_psnr", "lpips", "depth_abs_rel")},
+        **{k: mean.get(k) for k in ("psnr", "psnr_colorfit", "ssim", "ws_psnr", "lpips", "depth_abs_rel",
+                                   "flat_psnr", "flat_ssim")},
         **tr.model_dump(mode="json",
                         include={"train_seconds", "num_gaussians", "iterations", "train_images"}),
         "pixels_per_image": tr.crops.size ** 2 if tr.crops else tr.resolution[0] * tr.resolution[1],

@@ -53,6 +53,8 @@ METRIC_LABELS = {
     "depth_rmse": "depth RMSE (m) ↓",
     "psnr_colorfit": "PSNR colour-fit (dB) ↑",
     "ssim_colorfit": "SSIM colour-fit ↑",
+    "flat_psnr": "PSNR of a flat image (dB)",
+    "flat_ssim": "SSIM of a flat image",
 }
 
 #: The train log's columns the report draws: its name -> the key gaussians/trainer.py writes.

@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -60,15 +60,16 @@ class TrainView:
                          None if self.mask is None else self.mask.to(device))
 
 
-def mean_colour(views: list[TrainView]) -> tuple[float, float, float]:
-    """The mean RGB of the views' valid pixels, every pixel counted once: the least-squares
-    constant for what no training view covers, the background `background: "mean"` trains and
-    renders with."""
+def mean_colour(images: Iterable[tuple]) -> tuple[float, float, float]:
+    """The mean RGB of the valid pixels of (image [H,W,3], mask [H,W] bool or None) pairs (torch or
+    numpy), every pixel counted once: the least-squares constant for what no training view covers,
+    the background `background: "mean"` trains and renders with, and the flat image evaluate
+    scores as the floor a model must beat."""
     total, count = np.zeros(3), 0
-    for v in views:
-        px = v.image.detach().to("cpu", torch.float64).reshape(-1, 3).numpy()
-        if v.mask is not None:
-            px = px[v.mask.detach().cpu().reshape(-1).numpy()]
+    for image, mask in images:
+        px = torch.as_tensor(image).detach().to("cpu", torch.float64).reshape(-1, 3).numpy()
+        if mask is not None:
+            px = px[torch.as_tensor(mask).detach().cpu().reshape(-1).numpy()]
         total += px.sum(axis=0)
         count += px.shape[0]
     if count == 0:
@@ -190,7 +191,7 @@ class Trainer:
         self.train_seconds = 0.0
         self.nonfinite_steps = 0
         self.log_path = log_path
-        bg = mean_colour(views) if cfg.render.background == "mean" else cfg.render.background
+        bg = mean_colour((v.image, v.mask) for v in views) if cfg.render.background == "mean" else cfg.render.background
         self._bg = torch.tensor(bg, dtype=self.g.means.dtype, device=self.device)
         self.last_loss: float | None = None
         #: Per-panorama colour transforms (None: off); applied to training renders only.

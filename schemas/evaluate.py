@@ -27,6 +27,10 @@ class ViewMetrics(BaseModel):
         default=None, description="PSNR after a per-channel least-squares gain and bias of the render to the "
                                   "ground truth: exposure and white balance factored out (not the raw metric).")
     ssim_colorfit: float | None = Field(default=None, description="SSIM after the same colour fit.")
+    flat_psnr: float | None = Field(
+        default=None, description="PSNR of a flat image of the training panoramas' mean colour (valid pixels): the "
+                                  "floor a model must beat; None without posed training views.")
+    flat_ssim: float | None = Field(default=None, description="SSIM of the same flat image.")
     depth_abs_rel: float | None = Field(default=None, description="Where the scene has ground-truth depth.")
     depth_rmse: float | None = Field(default=None, description="Metres, where the scene has ground-truth depth.")
     depth_valid_pixels: int | None = None

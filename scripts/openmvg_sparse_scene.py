@@ -132,7 +132,7 @@ def diagnose_run(scene, run: Path) -> list[dict]:
     from pipeline.engine import complete_scene, read_meta, read_output
     from pipeline.registry import build_registry
     from schemas.scene_loader import valid_mask
-    from stages.evaluate import stitch_rig
+    from stages.evaluate import stitch_rig, training_mean_colour
 
     done = complete_scene(scene, run, build_registry())
     tdata, ev = read_output(run, "train"), read_output(run, "evaluate")
@@ -150,6 +150,7 @@ def diagnose_run(scene, run: Path) -> list[dict]:
     )
     train_mean = train_mean / 255.0 if train_mean.max() > 1.5 else train_mean
     logged = {m.view: m for m in ev.views}
+    flat_colour = training_mean_colour(done, (h, w))  # the floor: evaluate's flat image
     # the appearance gauge: the mean over the training panoramas of their learned gain and bias (test
     # views are rendered without one); applied to the test renders, what pinning it would roughly give
     gauge = None
@@ -188,6 +189,8 @@ def diagnose_run(scene, run: Path) -> list[dict]:
             "psnr_colorfit": _psnr(err_fit[mask].mean()),
             "ssim": M.ssim(image, gt, mask=mask),
             "ssim_colorfit": M.ssim(fitted, gt, mask=mask),
+            "flat_psnr": M.psnr(np.broadcast_to(flat_colour, gt.shape), gt, mask=mask),
+            "flat_ssim": M.ssim(np.broadcast_to(flat_colour, gt.shape), gt, mask=mask),
             "psnr_filled": _psnr(((filled - gt) ** 2).mean(-1)[mask].mean()),
             "psnr_gauge": (
                 _psnr(((np.clip(image * gauge[0] + gauge[1], 0, 1) - gt) ** 2).mean(-1)[mask].mean())
@@ -286,6 +289,8 @@ TABLE_KEYS = (
     "psnr_gauge",
     "ssim",
     "ssim_colorfit",
+    "flat_psnr",
+    "flat_ssim",
     "alpha",
     "holes",
     "dark_alpha",

@@ -37,7 +37,8 @@ from splatting import DEFAULT_TILE, MAX_TILE
 
 Output = EvaluateOutput
 
-METRIC_KEYS = ("psnr", "ssim", "ws_psnr", "lpips", "depth_abs_rel", "depth_rmse", "psnr_colorfit", "ssim_colorfit")
+METRIC_KEYS = ("psnr", "ssim", "ws_psnr", "lpips", "depth_abs_rel", "depth_rmse", "psnr_colorfit", "ssim_colorfit",
+               "flat_psnr", "flat_ssim")
 
 
 class Params(StageParams):
@@ -96,12 +97,14 @@ def describe_mask(scene, view) -> str | None:
     return " + ".join(parts) or None
 
 
-def view_metrics(render: np.ndarray, gt: np.ndarray, lpips_model=None, mask: np.ndarray | None = None
-                 ) -> dict[str, float | None]:
+def view_metrics(render: np.ndarray, gt: np.ndarray, lpips_model=None, mask: np.ndarray | None = None,
+                 flat: np.ndarray | None = None) -> dict[str, float | None]:
     """PSNR / SSIM / WS-PSNR (and LPIPS with a model) of one rendered panorama, over the valid
-    pixels of `mask` ([H,W] bool; None = all). LPIPS sees both images with masked pixels zeroed."""
+    pixels of `mask` ([H,W] bool; None = all). LPIPS sees both images with masked pixels zeroed.
+    With `flat` (an RGB colour), also the PSNR and SSIM of an image of that one colour: the floor."""
     keep = None if mask is None else mask[..., None]
     fitted = M.colour_fit(render, gt, mask)  # exposure and white balance factored out
+    flat_image = None if flat is None else np.broadcast_to(np.asarray(flat, gt.dtype), gt.shape)
     return {
         "psnr": M.psnr(render, gt, mask=mask),
         "ssim": M.ssim(render, gt, mask=mask),
@@ -110,7 +113,23 @@ def view_metrics(render: np.ndarray, gt: np.ndarray, lpips_model=None, mask: np.
                   if lpips_model is not None else None),
         "psnr_colorfit": M.psnr(fitted, gt, mask=mask),
         "ssim_colorfit": M.ssim(fitted, gt, mask=mask),
+        "flat_psnr": None if flat_image is None else M.psnr(flat_image, gt, mask=mask),
+        "flat_ssim": None if flat_image is None else M.ssim(flat_image, gt, mask=mask),
     }
+
+
+def training_mean_colour(scene: Scene, size: tuple[int, int]) -> np.ndarray | None:
+    """The posed training panoramas' mean colour over their valid pixels at `size` (None without
+    any): the flat image each view is also scored as (`flat_psnr`, `flat_ssim`). Where a model
+    does not beat it, its held-out view lies beyond what the training views predict and the raw
+    metrics measure exposure and smoothness (docs/evaluation.md)."""
+    from gaussians.trainer import mean_colour
+
+    views = [v for v in scene.manifest.train_views() if v.pose is not None]
+    if not views:
+        return None
+    return np.asarray(mean_colour((read_rgb(scene.image_path(v), size=size), valid_mask(scene, v, *size))
+                                  for v in views))
 
 
 def mean_metrics(rows: list[dict]) -> dict[str, float]:
@@ -253,6 +272,7 @@ def run(ctx: StageContext) -> EvaluateOutput:
         rows: list[dict] = []
         results: list[ViewMetrics] = []
         size = None
+        flat, flat_size = None, None
         backend = p.backend or "?"
         for v in ctx.track(views, "evaluate: views", total=len(views)):
             img_path = ctx.scene.image_path(v)
@@ -265,7 +285,9 @@ def run(ctx: StageContext) -> EvaluateOutput:
                             rig=stitch_rig(tdata, size), tile_size=p.tile_size)
             backend = r.backend
             mask = valid_mask(ctx.scene, v, *size)
-            m = view_metrics(r.image, gt, lpips_model, mask)
+            if flat_size is None:  # once: the mean colour hardly depends on the size
+                flat, flat_size = training_mean_colour(ctx.scene, size), size
+            m = view_metrics(r.image, gt, lpips_model, mask, flat)
             row = {"view": v.name, "split": split, **m, "render_seconds": r.seconds}
             gt_depth_path = ctx.scene.gt_depth_path(v)
             dm = None
@@ -284,6 +306,7 @@ def run(ctx: StageContext) -> EvaluateOutput:
                 ViewMetrics(
                     view=v.name, split=split, psnr=m["psnr"], ssim=m["ssim"], ws_psnr=m["ws_psnr"], lpips=m["lpips"],
                     psnr_colorfit=m["psnr_colorfit"], ssim_colorfit=m["ssim_colorfit"],
+                    flat_psnr=m["flat_psnr"], flat_ssim=m["flat_ssim"],
                     depth_abs_rel=row.get("depth_abs_rel"), depth_rmse=row.get("depth_rmse"),
                     depth_valid_pixels=dm["count"] if dm else None, render_seconds=r.seconds,
                     gt=names["gt"], render=names["renders"], error=names["errors"], depth=names["depth"],
@@ -303,6 +326,12 @@ def run(ctx: StageContext) -> EvaluateOutput:
     finally:
         torch.set_num_threads(old_threads)
 
+    below = [r["view"] for r in rows if split == "test" and r["flat_psnr"] is not None and r["psnr"] is not None
+             and r["psnr"] <= r["flat_psnr"]]
+    if below:
+        ctx.warn(f"{len(below)} of {len(rows)} held-out views score no higher PSNR than a flat image of the training "
+                 f"panoramas' mean colour ({', '.join(below[:5])}{', ...' if len(below) > 5 else ''}): there the "
+                 "raw metrics measure exposure and smoothness, not the reconstruction (compare psnr_colorfit)")
     mean = mean_metrics(rows)
     write_csv(out / "metrics.csv", rows, mean)
     return EvaluateOutput(

@@ -236,6 +236,8 @@ def test_per_view_table_lists_each_view(run_dir, sim_scene, tmp_path):
     assert [r.split("|")[1].strip() for r in rows] == ["test_00", "test_01"]
     assert "| 35 |" in rows[0] and "| 19 |" in rows[1]
     assert "best test_00 35.00 dB, worst test_01 19.00 dB (16.00 dB apart)" in md
+    header = next(ln for ln in md.splitlines() if ln.startswith("| view |"))
+    assert "PSNR of a flat image (dB)" in header and "SSIM of a flat image" in header  # the floor, beside
 
 
 def test_report_shows_baseline_and_360_side_by_side(run_dir, sim_scene, tmp_path):

@@ -103,3 +103,42 @@ def test_params_reject_unknown_and_bad_values():
 def test_mean_metrics_leaves_out_missing():
     rows = [{"psnr": 10.0, "lpips": None, "depth_rmse": float("nan")}, {"psnr": 20.0, "lpips": None}]
     assert evaluate.mean_metrics(rows) == {"psnr": 15.0}
+
+
+def test_a_flat_image_is_the_floor_and_a_model_below_it_is_named(tmp_path, monkeypatch):
+    """Each view is also scored as a flat image of the posed training panoramas' mean colour over
+    their valid pixels (`flat_psnr`, `flat_ssim`): a model that reconstructs the view beats it, one
+    that does not is named in a warning (its raw metrics then measure exposure and smoothness)."""
+    from evaluation import metrics as M
+    from panogeom.images import read_rgb
+    from schemas.scene_loader import valid_mask
+
+    monkeypatch.setenv("PANO_PIPE_LPIPS_WEIGHTS", str(tmp_path / "none"))
+    scene = make_scene(tmp_path / "s", views=2, test_views=1, height=16)
+    size = (16, 32)
+    pixels = []
+    for t in scene.manifest.train_views():
+        image, mask = read_rgb(scene.image_path(t), size=size), valid_mask(scene, t, *size)
+        pixels.append(image.reshape(-1, 3) if mask is None else image[mask])
+    colour = np.concatenate(pixels).astype(np.float64).mean(axis=0)
+    test = scene.manifest.test_views()[0]
+    gt, mask = read_rgb(scene.image_path(test), size=size), valid_mask(scene, test, *size)
+    flat = np.broadcast_to(colour.astype(np.float32), gt.shape)
+
+    good = backprojected_gaussians(scene)
+    write_train_artifact(tmp_path / "good", good, resolution=size)
+    out, ctx = _run(scene, tmp_path / "good", fps_repeats=1, lpips=False)
+    v = out.views[0]
+    assert v.flat_psnr == pytest.approx(M.psnr(flat, gt, mask=mask), abs=1e-4)
+    assert v.flat_ssim == pytest.approx(M.ssim(flat, gt, mask=mask), abs=1e-4)
+    assert v.psnr > v.flat_psnr + 3 and v.ssim > v.flat_ssim
+    assert out.mean["flat_psnr"] == pytest.approx(v.flat_psnr)
+    assert not any("flat image" in w for w in ctx.warnings)
+
+    good.sh_dc = -good.sh_dc  # every colour inverted about grey: the geometry right, the view not predicted
+    write_train_artifact(tmp_path / "bad", good, resolution=size)
+    out, ctx = _run(scene, tmp_path / "bad", fps_repeats=1, lpips=False)
+    v = out.views[0]
+    assert v.flat_psnr == pytest.approx(M.psnr(flat, gt, mask=mask), abs=1e-4)
+    assert v.psnr < v.flat_psnr
+    assert [w for w in ctx.warnings if "flat image" in w and "test_00" in w and "1 of 1" in w]

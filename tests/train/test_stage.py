@@ -90,9 +90,12 @@ def test_mean_colour_counts_each_valid_pixel_once():
     mask_a[0] = True
     cam = splatting.EquirectCamera(2, 4)
     views = [TrainView("a", a, torch.eye(4), cam, mask_a), TrainView("b", torch.full((1, 2, 3), 0.8), torch.eye(4), cam)]
-    assert mean_colour(views) == pytest.approx(((4 * 0.2 + 1.6) / 6, (1.6 + 1.6) / 6, (2.4 + 1.6) / 6))
+    expected = ((4 * 0.2 + 1.6) / 6, (1.6 + 1.6) / 6, (2.4 + 1.6) / 6)
+    assert mean_colour((v.image, v.mask) for v in views) == pytest.approx(expected)
+    # numpy pairs (evaluate's flat image) count the same
+    assert mean_colour([(a.numpy(), mask_a.numpy()), (np.full((1, 2, 3), 0.8), None)]) == pytest.approx(expected)
     with pytest.raises(ValueError, match="no valid pixel"):
-        mean_colour([TrainView("a", a, torch.eye(4), cam, torch.zeros(2, 4, dtype=torch.bool))])
+        mean_colour([(a, torch.zeros(2, 4, dtype=torch.bool))])
 
 
 def test_mean_background_is_the_default_recorded_and_rendered_by_evaluate(tiny_room, tmp_path):
@@ -106,7 +109,8 @@ def test_mean_background_is_the_default_recorded_and_rendered_by_evaluate(tiny_r
     views = ctx.scene.manifest.train_views()
     images = T.load_images(ctx.scene, views, 16)
     masks = {v.name: valid_mask(ctx.scene, v, 16, 32) for v in views}
-    expected = mean_colour(T.build_views(images, {v.name: v.viewmat for v in views}, "360", masks, None))
+    built = T.build_views(images, {v.name: v.viewmat for v in views}, "360", masks, None)
+    expected = mean_colour((v.image, v.mask) for v in built)
     assert min(expected) > 0.01  # not black
     out = T.run(ctx)
     assert out.settings["background"] == pytest.approx(list(expected))
