@@ -30,8 +30,10 @@ VARIANTS: dict[str, dict] = {
     "360+reg": {"projection": "360", "layout_reg": True},
 }
 
-METRICS = (("psnr", 2), ("ssim", 3), ("ws_psnr", 2), ("psnr_colorfit", 2), ("lpips", 3), ("num_gaussians", 0),
-           ("train_seconds", 0))
+#: (record key, decimals, table heading); flat_*: evaluate's flat image of the training mean colour, the floor
+METRICS = (("psnr", 2, "PSNR"), ("ssim", 3, "SSIM"), ("ws_psnr", 2, "WS-PSNR"), ("psnr_colorfit", 2, "colour-fit PSNR"),
+           ("flat_psnr", 2, "flat PSNR"), ("flat_ssim", 3, "flat SSIM"), ("lpips", 3, "LPIPS"),
+           ("num_gaussians", 0, "Gaussians"), ("train_seconds", 0, "train s"))
 
 
 def parse_variant(text: str) -> tuple[str, dict]:
@@ -68,15 +70,14 @@ def table(runs: list[dict], reference: str | None = None) -> str:
     by: dict[str, list[dict]] = {}
     for r in runs:
         by.setdefault(r["variant"], []).append(r)
-    head = "| variant | seeds | " + " | ".join(
-        ("PSNR", "SSIM", "WS-PSNR", "colour-fit PSNR", "LPIPS", "Gaussians", "train s")) + " | Δ PSNR vs " + (reference or "—") + " |"
+    head = "| variant | seeds | " + " | ".join(label for _, _, label in METRICS) + " | Δ PSNR vs " + (reference or "—") + " |"
     lines = [head, "|" + "---|" * (len(METRICS) + 3)]
     ref = by.get(reference or "", [])
     ref_mu = np.mean([r["psnr"] for r in ref]) if ref else math.nan
     ref_sd = np.std([r["psnr"] for r in ref], ddof=1) if len(ref) > 1 else 0.0
     for name, rs in by.items():
         cells = []
-        for m, d in METRICS:
+        for m, d, _ in METRICS:
             vals = [r[m] for r in rs if r.get(m) is not None]
             if not vals:
                 cells.append("—")
@@ -128,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"study: {name} seed {seed} -> {vdir}", flush=True)
             s = run_variant(scene, base, vdir, cfg)
             rec = {"variant": name, "seed": seed, "tag": tag, "overrides": overrides,
-                   **{m: s.get(m) for m, _ in METRICS}, "dir": s["dir"]}
+                   **{m: s.get(m) for m, _, _ in METRICS}, "dir": s["dir"]}
             with open(args.out, "a") as f:
                 f.write(json.dumps(rec) + "\n")
             print(f"study: {name} seed {seed}: PSNR {s['psnr']:.2f} SSIM {s['ssim']:.3f} "
