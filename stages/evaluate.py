@@ -272,7 +272,7 @@ def run(ctx: StageContext) -> EvaluateOutput:
         rows: list[dict] = []
         results: list[ViewMetrics] = []
         size = None
-        flat, flat_size = None, None
+        flat, flat_known = None, False
         backend = p.backend or "?"
         for v in ctx.track(views, "evaluate: views", total=len(views)):
             img_path = ctx.scene.image_path(v)
@@ -285,8 +285,8 @@ def run(ctx: StageContext) -> EvaluateOutput:
                             rig=stitch_rig(tdata, size), tile_size=p.tile_size)
             backend = r.backend
             mask = valid_mask(ctx.scene, v, *size)
-            if flat_size is None:  # once: the mean colour hardly depends on the size
-                flat, flat_size = training_mean_colour(ctx.scene, size), size
+            if not flat_known:  # once: the mean colour hardly depends on the size
+                flat, flat_known = training_mean_colour(ctx.scene, size), True
             m = view_metrics(r.image, gt, lpips_model, mask, flat)
             row = {"view": v.name, "split": split, **m, "render_seconds": r.seconds}
             gt_depth_path = ctx.scene.gt_depth_path(v)
