@@ -21,6 +21,10 @@ from simulate.generate import generate_scene
 from tests.clitools import run_main
 
 CHROMIUM = Path(os.environ.get("PANO_PIPE_CHROMIUM", "/usr/bin/chromium"))
+#: How long the browser may take for one step (start, a DevTools reply, a drawn frame). Generous on
+#: purpose: software WebGL on a busy 2-core machine took over a minute for one screenshot; a working
+#: viewer answers in seconds, so only a broken one waits this long.
+BROWSER_TIMEOUT_S = 300
 
 
 @pytest.fixture(scope="module")
@@ -194,7 +198,7 @@ class Chromium:
                 "about:blank"]
         self.proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         port_file = profile / "DevToolsActivePort"
-        deadline = time.time() + 30
+        deadline = time.time() + BROWSER_TIMEOUT_S
         while not (port_file.is_file() and port_file.read_text().strip()):
             if time.time() > deadline or self.proc.poll() is not None:
                 self.close()
@@ -203,7 +207,7 @@ class Chromium:
         port = int(port_file.read_text().split()[0])
         pages = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/json", timeout=10).read())
         page = next(p for p in pages if p.get("type") == "page")
-        self.ws = websocket.create_connection(page["webSocketDebuggerUrl"], timeout=60, suppress_origin=True)
+        self.ws = websocket.create_connection(page["webSocketDebuggerUrl"], timeout=BROWSER_TIMEOUT_S, suppress_origin=True)
         self.next_id = 0
         self.console: list[str] = []
         for method in ("Runtime.enable", "Log.enable", "Page.enable"):
@@ -299,11 +303,11 @@ def test_page_draws_the_splats_in_headless_chromium(viewer, capsys):
             before = len(viewer.server.get_clients())
             br.call("Page.navigate", url=viewer.url)
             client = _wait_for(lambda: [c for c in viewer.server.get_clients().values()][before:] or None,
-                               30, "the page to connect")[0]
-            _wait_for(lambda: client.camera.update_timestamp > 0, 30, "the client camera")
+                               BROWSER_TIMEOUT_S, "the page to connect")[0]
+            _wait_for(lambda: client.camera.update_timestamp > 0, BROWSER_TIMEOUT_S, "the client camera")
             # splats are sorted and drawn client-side: wait until they cover the 3D view
             first = _wait_for(lambda: (lambda s: s if _covered(s) > 0.5 else None)(br.screenshot()),
-                              60, "the Gaussians to be drawn")
+                              BROWSER_TIMEOUT_S, "the Gaussians to be drawn")
             assert _view(first).std() > 5, "the 3D view is blank"
             # the server moves the browser's camera: the picture changes
             cam = viewer.cameras[-1]
@@ -311,12 +315,12 @@ def test_page_draws_the_splats_in_headless_chromium(viewer, capsys):
                 client.camera.wxyz = tf.SO3.from_matrix(cam.c2w[:3, :3]).wxyz
                 client.camera.position = cam.c2w[:3, 3]
             second = _wait_for(lambda: (lambda s: s if _changed(first, s) > 5 else None)(br.screenshot()),
-                               30, "the view to change after moving the camera")
+                               BROWSER_TIMEOUT_S, "the view to change after moving the camera")
             assert _covered(second) > 0.5
             # the "gaussians" toggle hides them: back to (nearly) white background
             viewer.layers["gaussians"].value = False
             viewer.set_layer("gaussians", False)
-            _wait_for(lambda: _covered(br.screenshot()) < 0.3, 30, "the Gaussians to disappear")
+            _wait_for(lambda: _covered(br.screenshot()) < 0.3, BROWSER_TIMEOUT_S, "the Gaussians to disappear")
             viewer.set_layer("gaussians", True)
             viewer.layers["gaussians"].value = True
             bad, ignored = br.errors()
