@@ -132,7 +132,7 @@ def diagnose_run(scene, run: Path) -> list[dict]:
     from pipeline.engine import complete_scene, read_meta, read_output
     from pipeline.registry import build_registry
     from schemas.scene_loader import valid_mask
-    from stages.evaluate import stitch_rig, training_mean_colour
+    from stages.evaluate import flat_metrics, stitch_rig, training_mean_colour
 
     done = complete_scene(scene, run, build_registry())
     tdata, ev = read_output(run, "train"), read_output(run, "evaluate")
@@ -189,8 +189,7 @@ def diagnose_run(scene, run: Path) -> list[dict]:
             "psnr_colorfit": _psnr(err_fit[mask].mean()),
             "ssim": M.ssim(image, gt, mask=mask),
             "ssim_colorfit": M.ssim(fitted, gt, mask=mask),
-            "flat_psnr": M.psnr(np.broadcast_to(flat_colour, gt.shape), gt, mask=mask),
-            "flat_ssim": M.ssim(np.broadcast_to(flat_colour, gt.shape), gt, mask=mask),
+            **flat_metrics(flat_colour, gt, mask),
             "psnr_filled": _psnr(((filled - gt) ** 2).mean(-1)[mask].mean()),
             "psnr_gauge": (
                 _psnr(((np.clip(image * gauge[0] + gauge[1], 0, 1) - gt) ** 2).mean(-1)[mask].mean())

@@ -104,7 +104,6 @@ def view_metrics(render: np.ndarray, gt: np.ndarray, lpips_model=None, mask: np.
     With `flat` (an RGB colour), also the PSNR and SSIM of an image of that one colour: the floor."""
     keep = None if mask is None else mask[..., None]
     fitted = M.colour_fit(render, gt, mask)  # exposure and white balance factored out
-    flat_image = None if flat is None else np.broadcast_to(np.asarray(flat, gt.dtype), gt.shape)
     return {
         "psnr": M.psnr(render, gt, mask=mask),
         "ssim": M.ssim(render, gt, mask=mask),
@@ -113,9 +112,17 @@ def view_metrics(render: np.ndarray, gt: np.ndarray, lpips_model=None, mask: np.
                   if lpips_model is not None else None),
         "psnr_colorfit": M.psnr(fitted, gt, mask=mask),
         "ssim_colorfit": M.ssim(fitted, gt, mask=mask),
-        "flat_psnr": None if flat_image is None else M.psnr(flat_image, gt, mask=mask),
-        "flat_ssim": None if flat_image is None else M.ssim(flat_image, gt, mask=mask),
+        **flat_metrics(flat, gt, mask),
     }
+
+
+def flat_metrics(flat: np.ndarray | None, gt: np.ndarray, mask: np.ndarray | None = None) -> dict[str, float | None]:
+    """`flat_psnr` and `flat_ssim`: the PSNR and SSIM of an image of the one colour `flat` against `gt`
+    over `mask` (both None without a colour)."""
+    if flat is None:
+        return {"flat_psnr": None, "flat_ssim": None}
+    image = np.broadcast_to(np.asarray(flat, gt.dtype), gt.shape)
+    return {"flat_psnr": M.psnr(image, gt, mask=mask), "flat_ssim": M.ssim(image, gt, mask=mask)}
 
 
 def training_mean_colour(scene: Scene, size: tuple[int, int]) -> np.ndarray | None:
