@@ -225,6 +225,19 @@ def diagnose_run(scene, run: Path) -> list[dict]:
     return [{**row, **depth} for row in rows]
 
 
+def surface_distance_ratios(rendered, layout_distance: np.ndarray, label: np.ndarray) -> dict[str, np.ndarray]:
+    """Per surface of the layout (stages.align's labels), the rendered distance over the layout's at
+    the opaque pixels (alpha > 0.5). `rendered` is evaluation.model_io.render_pose's: its depth is
+    already the expected distance (normalised by alpha once; a second division would put every
+    translucent surface behind its layout)."""
+    alpha, distance = np.asarray(rendered.alpha), np.asarray(rendered.depth)
+    out = {}
+    for name, code in (("ceiling", 2), ("walls", 0), ("floor", 1)):
+        m = (label == code) & (alpha > 0.5) & np.isfinite(layout_distance)
+        out[name] = distance[m] / layout_distance[m]
+    return out
+
+
 def layout_depth_ratios(done, run: Path, g, tdata, h: int, w: int) -> dict:
     """Where the model puts the room, against the layout: per surface of the layout (ceiling, walls,
     floor, as the layout labels each pixel), the median over the training views' pixels with alpha
@@ -249,11 +262,8 @@ def layout_depth_ratios(done, run: Path, g, tdata, h: int, w: int) -> dict:
         ld, label = layout_depth_map(np.asarray(lv.floor_polygon), lv.camera_height, lv.ceiling_distance, h, w)
         r = render_pose(g, v.pose_matrix, equirect_camera(h, w), background=torch.zeros(3),
                         rig=stitch_rig(tdata, (h, w)))
-        alpha = np.asarray(r.alpha)
-        distance = np.asarray(r.depth) / np.maximum(alpha, 1e-6)
-        for name, code in (("ceiling", 2), ("walls", 0), ("floor", 1)):  # stages.align's labels
-            m = (label == code) & (alpha > 0.5) & np.isfinite(ld)
-            ratios.setdefault(name, []).append(distance[m] / ld[m])
+        for name, r_surface in surface_distance_ratios(r, ld, label).items():
+            ratios.setdefault(name, []).append(r_surface)
     return {f"{name}_depth_ratio": float(np.median(np.concatenate(rs))) for name, rs in ratios.items()
             if sum(x.size for x in rs)}
 
