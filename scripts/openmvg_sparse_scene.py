@@ -241,7 +241,7 @@ def surface_distance_ratios(rendered, layout_distance: np.ndarray, label: np.nda
 def layout_depth_ratios(done, run: Path, g, tdata, h: int, w: int) -> dict:
     """Where the model puts the room, against the layout: per surface of the layout (ceiling, walls,
     floor, as the layout labels each pixel), the median over the training views' pixels with alpha
-    > 0.5 of the rendered distance (depth / alpha) over the layout's, rendered from each training
+    > 0.5 of the rendered (expected) distance over the layout's, rendered from each training
     view with a layout. 1 is on the layout; above it, behind. Empty without a layout stage."""
     import torch
 
