@@ -226,13 +226,15 @@ def diagnose_run(scene, run: Path) -> list[dict]:
 
 
 def surface_distance_ratios(rendered, layout_distance: np.ndarray, label: np.ndarray) -> dict[str, np.ndarray]:
-    """Per surface of the layout (stages.align's labels), the rendered distance over the layout's at
+    """Per surface of the layout (panogeom.surfaces' labels), the rendered distance over the layout's at
     the opaque pixels (alpha > 0.5). `rendered` is evaluation.model_io.render_pose's: its depth is
     already the expected distance (normalised by alpha once; a second division would put every
     translucent surface behind its layout)."""
+    from panogeom.surfaces import CEILING, FLOOR, WALL
+
     alpha, distance = np.asarray(rendered.alpha), np.asarray(rendered.depth)
     out = {}
-    for name, code in (("ceiling", 2), ("walls", 0), ("floor", 1)):
+    for name, code in (("ceiling", CEILING), ("walls", WALL), ("floor", FLOOR)):
         m = (label == code) & (alpha > 0.5) & np.isfinite(layout_distance)
         out[name] = distance[m] / layout_distance[m]
     return out

@@ -32,6 +32,7 @@ def test_layout_distance_ratio_is_one_for_a_translucent_shell_on_the_layout():
 
     from evaluation.model_io import equirect_camera, render_pose
     from gaussians.model import Gaussians
+    from panogeom.surfaces import CEILING, FLOOR, WALL
 
     ratios_of = load_script("openmvg_sparse_scene").surface_distance_ratios
     n, radius = 4000, 2.0
@@ -43,8 +44,8 @@ def test_layout_distance_ratio_is_one_for_a_translucent_shell_on_the_layout():
                          opacity_logits=np.full(n, np.log(0.15 / 0.85)), sh_degree=0)
     h, w = 32, 64
     r = render_pose(g, np.eye(4), equirect_camera(h, w), background=torch.zeros(3))
-    label = np.zeros((h, w), np.int64)  # every pixel a wall
-    label[: h // 4], label[-h // 4:] = 2, 1  # the top a ceiling, the bottom a floor
+    label = np.full((h, w), WALL)
+    label[: h // 4], label[-h // 4:] = CEILING, FLOOR
     ratios = ratios_of(r, np.full((h, w), radius), label)
     opaque = r.alpha > 0.5
     assert opaque.mean() > 0.9 and np.median(1 / r.alpha[opaque]) > 1.4  # translucent: the check bites
