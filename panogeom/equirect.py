@@ -22,6 +22,8 @@ __all__ = [
     "ray_directions",
     "column_longitudes",
     "row_latitudes",
+    "project_to_pixels",
+    "sample_bilinear",
 ]
 
 
@@ -82,3 +84,31 @@ def nadir_cap(height: int, width: int, radius_deg: float) -> np.ndarray:
     theta = row_latitudes(height)  # +pi/2 at the top row, -pi/2 at the bottom
     valid_rows = theta > -np.pi / 2 + np.deg2rad(radius_deg)
     return np.broadcast_to(valid_rows[:, None], (height, width)).copy()
+
+
+def project_to_pixels(
+    points: np.ndarray, pose: np.ndarray, height: int, width: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """World points [N,3] -> continuous (col, row) in an H x W panorama with camera-to-world `pose`."""
+    pose = np.asarray(pose, dtype=np.float64)
+    cam = (points - pose[:3, 3]) @ pose[:3, :3]  # R^T (p - t)
+    phi, theta = dirs_to_angles(cam)
+    return angles_to_pixel(phi, theta, height, width)
+
+
+def sample_bilinear(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+    """Bilinear lookup [N,C] at continuous pixel coordinates (centres at integers); columns wrap
+    around the longitude seam, rows clamp at the poles."""
+    h, w = image.shape[:2]
+    row = np.clip(row, 0.0, h - 1.0)
+    c0 = np.floor(col)
+    r0 = np.floor(row)
+    fc = (col - c0)[:, None]
+    fr = (row - r0)[:, None]
+    c0 = c0.astype(np.int64) % w
+    c1 = (c0 + 1) % w
+    r0 = r0.astype(np.int64)
+    r1 = np.minimum(r0 + 1, h - 1)
+    top = image[r0, c0] * (1 - fc) + image[r0, c1] * fc
+    bot = image[r1, c0] * (1 - fc) + image[r1, c1] * fc
+    return top * (1 - fr) + bot * fr

@@ -249,7 +249,7 @@ def layout_depth_ratios(done, run: Path, g, tdata, h: int, w: int) -> dict:
 
     from evaluation.model_io import equirect_camera, render_pose
     from pipeline.engine import read_output
-    from stages.align import layout_depth_map
+    from floorplan.layout_depth import layout_depth_map
     from stages.evaluate import stitch_rig
 
     layout = read_output(run, "layout")

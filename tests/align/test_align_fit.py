@@ -5,19 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from depthalign.clouds import refine_scale_icp, view_rays
+from depthalign.scale_fit import fit_scale, values_to_depth
+from floorplan.layout_depth import layout_depth, layout_depth_map
 from panogeom.equirect import ray_directions
+from panogeom.surfaces import CEILING, FLOOR, WALL
 from runfs.errors import PanoError
-from stages.align import (
-    CEILING,
-    FLOOR,
-    WALL,
-    fit_scale,
-    layout_depth,
-    layout_depth_map,
-    refine_scale_icp,
-    values_to_depth,
-    view_rays,
-)
+from stages.align import Params, fit_settings
+
+#: the align stage's settings of the fit
+DEFAULTS = fit_settings(Params())
 
 H, W = 64, 128
 
@@ -95,7 +92,7 @@ def test_metric_scale_recovered_despite_furniture(sims, kit, tmp_path, noise, ou
     rng = np.random.default_rng(seed)
     k = rng.uniform(0.3, 3.0)
     vals, lays, _ = _pool(sim, maps, lambda gt, r: _noisy(gt, r, noise, outliers) * k, rng)
-    fit = fit_scale(vals, lays, "metric", seed=seed)
+    fit = fit_scale(vals, lays, "metric", **fit_settings(Params(seed=seed)))
     err = abs(fit.scale * k - 1)
     print(
         f"metric k={k:.3f} noise={noise} outliers={outliers}: "
@@ -113,7 +110,7 @@ def test_disparity_scale_and_shift_recovered(sims, kit, tmp_path, noise, outlier
     rng = np.random.default_rng(10 + seed)
     a, b = rng.uniform(0.3, 3.0), rng.uniform(-0.1, 0.5)  # disparity = a / depth + b
     vals, lays, gts = _pool(sim, maps, lambda gt, r: a / _noisy(gt, r, noise, outliers) + b, rng)
-    fit = fit_scale(vals, lays, "disparity", seed=seed)
+    fit = fit_scale(vals, lays, "disparity", **fit_settings(Params(seed=seed)))
     assert abs(fit.scale * a - 1) < tol  # s = 1/a
     depth = values_to_depth(vals, "disparity", fit.scale, fit.shift)
     clean = values_to_depth(a / gts + b, "disparity", fit.scale, fit.shift)
@@ -139,7 +136,7 @@ def test_affine_inverse_depth_fit_per_view_recovers_scale_and_shift_within_1_per
         a, b = rng.uniform(0.2, 5.0), rng.uniform(-0.3, 1.0)
         gt = sim.gt(v)
         vals = a / _noisy(gt, rng, 0.02, 0.05) + b
-        fit = fit_scale(vals, maps[v.name][0], "disparity", seed=seed)
+        fit = fit_scale(vals, maps[v.name][0], "disparity", **fit_settings(Params(seed=seed)))
         s_err = abs(fit.scale * a - 1)
         t_err = abs(fit.shift + b / a) / np.median(1 / gt)  # relative to the view's typical inverse depth
         print(
@@ -155,7 +152,7 @@ def test_relative_depth_scale_and_shift_recovered(sims, kit, tmp_path):
     rng = np.random.default_rng(5)
     a, b = 2.2, -0.7  # relative value = a * depth + b
     vals, lays, gts = _pool(sim, maps, lambda gt, r: a * gt + b, rng)
-    fit = fit_scale(vals, lays, "relative")
+    fit = fit_scale(vals, lays, "relative", **DEFAULTS)
     assert abs(fit.scale * a - 1) < 0.01 and abs(fit.shift - (-b / a)) < 0.01
     assert fit.residual_m < 1e-3
 
@@ -174,7 +171,7 @@ def test_masked_pixels_are_ignored(sims, kit, tmp_path):
         return d
 
     vals, lays, _ = _pool(sim, maps, broken, rng)
-    fit = fit_scale(vals, lays, "metric")
+    fit = fit_scale(vals, lays, "metric", **DEFAULTS)
     assert abs(fit.scale - 2.0) < 1e-3
     assert fit.num_pixels == np.isfinite(vals[vals > 0]).sum()
 
@@ -184,10 +181,10 @@ def test_refuses_depth_that_disagrees_with_the_layout(sims, kit, tmp_path):
     maps = _layout_maps(sim, kit, tmp_path)
     vals, lays, _ = _pool(sim, maps, lambda gt, r: r.uniform(0.5, 8.0, gt.shape), np.random.default_rng(0))
     with pytest.raises(PanoError) as e:
-        fit_scale(vals, lays, "metric", inlier_threshold=0.05, min_inlier_share=0.5)
+        fit_scale(vals, lays, "metric", **fit_settings(Params(inlier_threshold=0.05, min_inlier_share=0.5)))
     assert "agree" in str(e.value) and "\n" not in str(e.value)
     with pytest.raises(PanoError, match="only 5 valid"):
-        fit_scale(np.ones(5), np.ones(5), "metric")
+        fit_scale(np.ones(5), np.ones(5), "metric", **DEFAULTS)
 
 
 def test_scale_only_icp_recovers_a_residual_scale(sims, kit, tmp_path):
@@ -202,7 +199,8 @@ def test_scale_only_icp_recovers_a_residual_scale(sims, kit, tmp_path):
         rays.append(r)
         cents.append(np.broadcast_to(c, r.shape))
     lam, stats = refine_scale_icp(
-        np.concatenate(cents), np.concatenate(rays), cloud["points"], cloud["normals"], max_distance=0.2
+        np.concatenate(cents), np.concatenate(rays), cloud["points"], cloud["normals"], max_distance=0.2,
+        iterations=Params().icp_iterations
     )
     assert abs(lam * 1.03 - 1) < 2e-3
     assert stats["fitness"] > 0.9 and stats["rmse_m"] < 0.02

@@ -9,8 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from depthalign.scale_fit import fit_scale, values_to_depth
+from floorplan.layout_depth import layout_depth_map
 from runfs.errors import PanoError
-from stages.align import fit_scale, layout_depth_map, values_to_depth
+from stages.align import Params, fit_settings
 
 H = 64
 
@@ -48,7 +50,7 @@ def _fit(dk, scene, maps, kind, views=None):
         lays.append(lay.reshape(-1))
         gts.append(dk.gt_depth(scene, v).reshape(-1))
     vals, lays, gts = map(np.concatenate, (vals, lays, gts))
-    fit = fit_scale(vals, lays, kind)
+    fit = fit_scale(vals, lays, kind, **fit_settings(Params()))
     err = np.nanmedian(np.abs(values_to_depth(vals, kind, fit.scale, fit.shift) / gts - 1))
     return fit, err
 

@@ -16,6 +16,7 @@ FLOORS = {
     "schemas": 1, "panogeom": 1, "runtime": 1,  # data contracts, conventions, the stage contract, the console
     "splatting": 2, "models": 2,  # the renderer; the model registry and cache
     "gaussians": 3, "layoutnet": 3, "depthnet": 3, "sfm": 3, "simulate": 3, "evaluation": 3, "export": 3,
+    "floorplan": 3, "depthalign": 3,  # the layout's geometry; depth made metric by it
     "stages": 4,  # one module per stage: glue over the floors below
     "pipeline": 5,  # the DAG, the engine, settings, importers
     "batch": 6, "viewer": 6,  # drive the engine / read run folders

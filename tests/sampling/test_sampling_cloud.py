@@ -10,10 +10,13 @@ import shapely
 from pydantic import ValidationError
 from shapely.geometry import LineString, Polygon
 
+from floorplan import box_sampling as B
+from panogeom.equirect import sample_bilinear
+from panogeom.surfaces import CEILING, FLOOR, SURFACE_NAMES, WALL
 from runfs.errors import PanoError
-from schemas.scene_loader import load_scene
 from runtime.stage import Loaded, StageContext
 from schemas.layout import LayoutOutput
+from schemas.scene_loader import load_scene
 from schemas.union import Room
 from stages import sampling as S
 from stages.cloud_io import read_cloud
@@ -55,13 +58,13 @@ def _distance_to_true_shell(
 @pytest.mark.parametrize("density", [100.0, 400.0, 1000.0])
 def test_stratified_samplers_match_density(density):
     rng = np.random.default_rng(0)
-    st = S.stratified_rect(3.7, 2.65, density, rng)
+    st = B.stratified_rect(3.7, 2.65, density, rng)
     assert len(st) == pytest.approx(3.7 * 2.65 * density, rel=0.02)
     assert st[:, 0].min() >= 0 and st[:, 0].max() <= 3.7 and st[:, 1].min() >= 0 and st[:, 1].max() <= 2.65
     poly = Polygon(
         [(0, 0), (5, 0), (5, 2), (2, 2), (2, 4), (0, 4)], [[(0.5, 0.5), (1, 0.5), (1, 1), (0.5, 1)]]
     )
-    xz = S.stratified_polygon(poly, density, rng)
+    xz = B.stratified_polygon(poly, density, rng)
     assert len(xz) == pytest.approx(poly.area * density, rel=0.03)
     assert shapely.contains_xy(poly, xz[:, 0], xz[:, 1]).all()
     # Uniform: each quarter of the big arm gets a quarter of its points.
@@ -74,7 +77,7 @@ def test_room_walls_normals_point_inwards_including_holes():
     poly = Polygon(
         [(0, 0), (0, 4), (4, 4), (4, 0)], [[(1, 1), (2, 1), (2, 2), (1, 2)]]
     )  # clockwise outer ring
-    walls = S.room_walls(poly)
+    walls = B.room_walls(poly)
     assert len(walls) == 8
     for a, b, n in walls:
         mid = (a + b) / 2
@@ -87,13 +90,13 @@ def test_line_of_sight_blocked_by_walls():
     b = np.array([[6.0, 2.0], [2.0, 6.0]])  # the two walls meeting at the L's reflex corner
     cam = np.array([1.0, 5.5])
     targets = np.array([[5.0, 1.0], [1.0, 0.5], [1.5, 3.0], [5.9, 1.99]])
-    np.testing.assert_array_equal(S.line_of_sight(cam, targets, a, b), [False, True, True, False])
+    np.testing.assert_array_equal(B.line_of_sight(cam, targets, a, b), [False, True, True, False])
 
 
 def test_bilinear_wraps_at_the_seam():
     img = np.zeros((4, 8, 1))
     img[:, 0, 0] = 1.0  # first column bright, last column dark
-    v = S.sample_bilinear(img, np.array([7.5, -0.5, -0.25, 0.0, 3.0]), np.array([1.0, 1.0, 1.0, -0.5, 10.0]))
+    v = sample_bilinear(img, np.array([7.5, -0.5, -0.25, 0.0, 3.0]), np.array([1.0, 1.0, 1.0, -0.5, 10.0]))
     np.testing.assert_allclose(v[:, 0], [0.5, 0.5, 0.75, 1.0, 0.0])
 
 
@@ -115,16 +118,16 @@ def test_points_on_true_surfaces_with_inward_normals(two_rooms, gt_union, tmp_pa
     n = cloud["normals"].astype(np.float64)
     np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-6)
     surf = labels["surface"]
-    wall = surf == S.WALL
+    wall = surf == WALL
     inside_in = shapely.contains_xy(outline, p[wall, 0] + 1e-3 * n[wall, 0], p[wall, 2] + 1e-3 * n[wall, 2])
     inside_out = shapely.contains_xy(outline, p[wall, 0] - 1e-3 * n[wall, 0], p[wall, 2] - 1e-3 * n[wall, 2])
     assert inside_in.all() and not inside_out.any()
     assert np.all(n[wall, 1] == 0)
     # Floor normals point up (-y: the room is above the floor), ceiling normals down (+y).
-    np.testing.assert_array_equal(n[surf == S.FLOOR], np.tile([0, -1, 0], ((surf == S.FLOOR).sum(), 1)))
-    np.testing.assert_array_equal(n[surf == S.CEILING], np.tile([0, 1, 0], ((surf == S.CEILING).sum(), 1)))
-    np.testing.assert_allclose(p[surf == S.FLOOR, 1], floor_y, atol=1e-6)
-    np.testing.assert_allclose(p[surf == S.CEILING, 1], ceiling_y, atol=1e-6)
+    np.testing.assert_array_equal(n[surf == FLOOR], np.tile([0, -1, 0], ((surf == FLOOR).sum(), 1)))
+    np.testing.assert_array_equal(n[surf == CEILING], np.tile([0, 1, 0], ((surf == CEILING).sum(), 1)))
+    np.testing.assert_allclose(p[surf == FLOOR, 1], floor_y, atol=1e-6)
+    np.testing.assert_allclose(p[surf == CEILING, 1], ceiling_y, atol=1e-6)
     # u0 is the initial position; every point is a layout point.
     np.testing.assert_array_equal(cloud["u0"], cloud["points"])
     assert cloud["is_layout"].all() and out.cloud.num_layout_points == len(p)
@@ -140,7 +143,7 @@ def test_doorway_wall_is_not_sampled(two_rooms, gt_union, tmp_path):
     xw = door["a"][0]
     ra, rb = (np.asarray(r["polygon"]) for r in gt["rooms"])
     z0, z1 = max(ra[:, 1].min(), rb[:, 1].min()), min(ra[:, 1].max(), rb[:, 1].max())  # the shared wall
-    on_plane = (surf == S.WALL) & (np.abs(p[:, 0] - xw) < 1e-4)
+    on_plane = (surf == WALL) & (np.abs(p[:, 0] - xw) < 1e-4)
     assert on_plane.any()  # room A's own walls beside room B stay
     assert not ((p[on_plane, 2] > z0 + 1e-4) & (p[on_plane, 2] < z1 - 1e-4)).any()
 
@@ -149,7 +152,7 @@ def test_doorway_wall_is_not_sampled(two_rooms, gt_union, tmp_path):
 def test_density_matches_parameter(two_rooms, gt_union, tmp_path, density):
     union = gt_union(two_rooms)
     out, _, _ = _run(two_rooms, union, tmp_path, density=density, export_mesh=False)
-    areas = S.surface_areas(union.rooms)
+    areas = B.surface_areas(union.rooms)
     for name in ("wall", "floor", "ceiling"):
         got = out.points_per_surface[name] / areas[name]
         assert got == pytest.approx(density, rel=0.03), name
@@ -195,9 +198,9 @@ def test_simulator_colours_are_the_surface_colours(two_rooms, gt_union, gt_view_
 
     floors = [n for n in MATERIAL_RGB if n.startswith("floor_")]
     shares = (
-        share(surf == S.FLOOR, floors),
-        share(surf == S.CEILING, ["ceiling"]),
-        share(surf == S.WALL, ["paint", "wallpaper"]),
+        share(surf == FLOOR, floors),
+        share(surf == CEILING, ["ceiling"]),
+        share(surf == WALL, ["paint", "wallpaper"]),
     )
     print(f"points with their surface's colour (floor, ceiling, walls): {shares}")
     assert min(shares) > 0.85  # the rest lie within a pixel of an edge and blend two surfaces
@@ -207,9 +210,9 @@ def test_simulator_colours_are_the_surface_colours(two_rooms, gt_union, gt_view_
     pts2 = shapely.points(p[:, 0], p[:, 2])
     walls = shapely.union_all([Polygon(r["polygon"]).boundary for r in gt["rooms"]])
     far = shapely.distance(walls, pts2) > 0.5
-    assert (far & (surf == S.FLOOR)).sum() > 500
+    assert (far & (surf == FLOOR)).sum() > 500
     assert (
-        share(far & (surf == S.FLOOR), floors) == 1.0 and share(far & (surf == S.CEILING), ["ceiling"]) == 1.0
+        share(far & (surf == FLOOR), floors) == 1.0 and share(far & (surf == CEILING), ["ceiling"]) == 1.0
     )
     # Points of room B are coloured from room B's camera.
     room_b = Polygon(gt["rooms"][1]["polygon"]).buffer(-0.15)
@@ -236,7 +239,7 @@ def test_colours_stored_match_own_lookup(two_rooms, gt_union, tmp_path):
     from panogeom.images import read_rgb
 
     imgs = [read_rgb(scene.image_path(v)) for v in train]
-    own = S.colour_points(
+    own = B.colour_points(
         cloud["points"].astype(np.float64), lab["view"].astype(int), [v.pose_matrix for v in train], imgs
     )
     np.testing.assert_allclose(cloud["colors"], own, atol=1e-6)
@@ -321,13 +324,13 @@ def test_two_rooms_of_different_heights():
         Room(polygon=[(0, 0), (3, 0), (3, 3), (0, 3)], floor_y=0.0, ceiling_y=-2.5, views=["a"]),
         Room(polygon=[(5, 0), (8, 0), (8, 3), (5, 3)], floor_y=0.2, ceiling_y=-3.0, views=["b"]),
     ]
-    s = S.sample_rooms(rooms, 200.0, seed=1)
+    s = B.sample_rooms(rooms, density=200.0, seed=1, jitter=True, surfaces=SURFACE_NAMES)
     for i, r in enumerate(rooms):
         sel = s.room == i
         assert s.points[sel, 1].min() == pytest.approx(r.ceiling_y) and s.points[
             sel, 1
         ].max() == pytest.approx(r.floor_y)
-        w = sel & (s.surface == S.WALL)
+        w = sel & (s.surface == WALL)
         assert (s.points[w, 1] >= r.ceiling_y).all() and (s.points[w, 1] <= r.floor_y).all()
 
 
@@ -345,15 +348,15 @@ def test_oblique_walls_and_holes_are_sampled_exactly():
         views=["a"],
     )
     poly = Polygon(room.polygon, room.holes)
-    s = S.sample_rooms([room], 300.0, seed=2)
+    s = B.sample_rooms([room], density=300.0, seed=2, jitter=True, surfaces=SURFACE_NAMES)
     p = s.points.astype(np.float32).astype(np.float64)  # as stored
     d = _distance_to_true_shell(p, poly, room.floor_y, room.ceiling_y)
     assert d.max() < 1e-5
-    wall = s.surface == S.WALL
+    wall = s.surface == WALL
     q_in = p[wall][:, [0, 2]] + 1e-3 * s.normals[wall][:, [0, 2]]
     q_out = p[wall][:, [0, 2]] - 1e-3 * s.normals[wall][:, [0, 2]]
     assert shapely.contains_xy(poly, q_in[:, 0], q_in[:, 1]).all()
     assert not shapely.contains_xy(poly, q_out[:, 0], q_out[:, 1]).any()
-    areas = S.surface_areas([room])
+    areas = B.surface_areas([room])
     assert wall.sum() == pytest.approx(300.0 * areas["wall"], rel=0.03)
-    assert (s.surface == S.FLOOR).sum() == pytest.approx(300.0 * poly.area, rel=0.03)
+    assert (s.surface == FLOOR).sum() == pytest.approx(300.0 * poly.area, rel=0.03)

@@ -10,11 +10,15 @@ import pytest
 from shapely.geometry import Polygon
 from shapely.ops import unary_union
 
+from floorplan import union as F
 from runfs.errors import PanoError
-from schemas.scene_loader import load_scene
 from runtime.stage import Loaded, StageContext
 from schemas.layout import LayoutOutput, ViewLayout
+from schemas.scene_loader import load_scene
 from stages import union as U
+
+#: the union stage's settings
+P = U.Params()
 
 
 def _gt(scene_dir):
@@ -49,20 +53,20 @@ def test_polygon_to_world_yaw_and_translation():
     pose[:3, :3] = [[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]]
     pose[:3, 3] = [1.0, -1.5, 2.0]
     # Camera forward (+z) turned 90 deg about +y points along world +x; camera +x along world -z.
-    w = U.polygon_to_world([(0.0, 1.0), (1.0, 0.0)], pose, 1.5)
+    w = F.polygon_to_world([(0.0, 1.0), (1.0, 0.0)], pose, 1.5)
     np.testing.assert_allclose(w, [[2.0, 2.0], [1.0, 1.0]], atol=1e-12)
-    assert U.camera_tilt_deg(pose) == pytest.approx(0.0, abs=1e-9)
+    assert F.camera_tilt_deg(pose) == pytest.approx(0.0, abs=1e-9)
 
 
 def test_bowtie_polygon_is_repaired():
     bowtie = [(0, 0), (2, 2), (2, 0), (0, 2)]  # self-intersecting at (1, 1)
     assert not Polygon(bowtie).is_valid
-    fixed, repaired = U.repair_polygon(bowtie)
+    fixed, repaired = F.repair_polygon(bowtie)
     assert repaired and fixed.is_valid
     assert fixed.area == pytest.approx(2.0, abs=1e-9)  # the two unit triangles
-    same, repaired2 = U.repair_polygon([(0, 0), (1, 0), (1, 1)])
+    same, repaired2 = F.repair_polygon([(0, 0), (1, 0), (1, 1)])
     assert not repaired2 and same.area == pytest.approx(0.5)
-    empty, rep3 = U.repair_polygon([(0, 0), (1, 1)])
+    empty, rep3 = F.repair_polygon([(0, 0), (1, 1)])
     assert rep3 and empty.is_empty
 
 
@@ -79,7 +83,7 @@ def test_bowtie_view_in_stage_is_repaired_and_warned():
         ),
     ]
     warnings = []
-    rooms, per_view = U.build_floor_plan(layouts, {"a": np.eye(4)}, U.Params(), warnings.append)
+    rooms, per_view = F.build_floor_plan(layouts, {"a": np.eye(4)}, **U.plan_settings(P), warn=warnings.append)
     assert per_view["a"]["repaired"] is True
     assert any("repaired" in w for w in warnings)
     # The two triangles touch at the camera: closing merges them into one valid room.
@@ -91,20 +95,20 @@ def test_gaps_below_tolerance_close_and_wide_gaps_do_not():
     a = Polygon([(0, 0), (3, 0), (3, 3), (0, 3)])
     b_near = Polygon([(3.03, 0.5), (6, 0.5), (6, 2.5), (3.03, 2.5)])  # 3 cm gap < 2 tol
     b_far = Polygon([(3.5, 0.5), (6, 0.5), (6, 2.5), (3.5, 2.5)])  # 50 cm apart: another room
-    merged = U.merge_floor_plans([a, b_near], tolerance=0.05)
+    merged = F.merge_floor_plans([a, b_near], tolerance=0.05, min_area=P.min_room_area, simplify=P.simplify)
     assert len(merged) == 1
     # The gap is filled only where both walls face each other (z in [0.5, 2.5]).
     assert merged[0].area == pytest.approx(9 + 2.97 * 2 + 0.03 * 2, abs=1e-6)
-    assert len(U.merge_floor_plans([a, b_far], tolerance=0.05)) == 2
+    assert len(F.merge_floor_plans([a, b_far], tolerance=0.05, min_area=P.min_room_area, simplify=P.simplify)) == 2
     # A 2 cm sliver sticking out of the room is removed; square corners stay exact.
     spike = Polygon([(3, 1.0), (4, 1.0), (4, 1.02), (3, 1.02)])
-    clean = U.merge_floor_plans([a, spike], tolerance=0.05)
+    clean = F.merge_floor_plans([a, spike], tolerance=0.05, min_area=P.min_room_area, simplify=P.simplify)
     assert len(clean) == 1 and clean[0].symmetric_difference(a).area < 1e-9
 
 
 def test_robust_mean_ignores_outlier():
-    assert U.robust_mean([2.80, 2.81, 2.79, 3.60]) == pytest.approx(2.80, abs=1e-9)
-    assert U.robust_mean([1.0]) == 1.0
+    assert F.robust_mean([2.80, 2.81, 2.79, 3.60]) == pytest.approx(2.80, abs=1e-9)
+    assert F.robust_mean([1.0]) == 1.0
 
 
 # ----------------------------------------------------------------------------- simulator scenes
@@ -116,8 +120,8 @@ def test_two_rooms_union_matches_true_floor_plan(two_rooms_scene, tmp_path, gt_l
     true = _gt_shape(two_rooms_scene)
     # The doorway's wall is interior to the union: one room, the outline of both.
     assert len(out.rooms) == 1
-    got = U.room_shape(out.rooms[0])
-    iou = U.polygon_iou(got, true)
+    got = F.room_shape(out.rooms[0])
+    iou = F.polygon_iou(got, true)
     print(f"two-rooms IoU (exact layouts): {iou:.6f}")
     assert iou >= 0.999
     assert out.area_m2 == pytest.approx(true.area, rel=1e-3)
@@ -140,7 +144,7 @@ def test_two_rooms_union_with_noisy_layouts(two_rooms_scene, tmp_path, gt_layout
     layout = gt_layouts(two_rooms_scene, noise=0.02, shrink=0.01, seed=7)
     out, _, _ = _run(two_rooms_scene, layout, tmp_path)
     assert len(out.rooms) == 1
-    iou = U.polygon_iou(U.room_shape(out.rooms[0]), _gt_shape(two_rooms_scene))
+    iou = F.polygon_iou(F.room_shape(out.rooms[0]), _gt_shape(two_rooms_scene))
     print(f"two-rooms IoU (noisy layouts): {iou:.4f}")
     assert iou >= 0.98
 
@@ -148,7 +152,7 @@ def test_two_rooms_union_with_noisy_layouts(two_rooms_scene, tmp_path, gt_layout
 def test_l_shape_union(l_shape_scene, tmp_path, gt_layouts):
     out, _, _ = _run(l_shape_scene, gt_layouts(l_shape_scene), tmp_path)
     assert len(out.rooms) == 1
-    assert U.polygon_iou(U.room_shape(out.rooms[0]), _gt_shape(l_shape_scene)) >= 0.999
+    assert F.polygon_iou(F.room_shape(out.rooms[0]), _gt_shape(l_shape_scene)) >= 0.999
 
 
 def test_rooms_with_different_heights_keep_their_own(tmp_path):
@@ -176,8 +180,8 @@ def test_rooms_with_different_heights_keep_their_own(tmp_path):
         ("b1", 9, -1.3, 0.3, -2.9, r2),
     ]
     made = [view(*s) for s in specs]
-    rooms, per_view = U.build_floor_plan(
-        [m[0] for m in made], {s[0]: m[1] for s, m in zip(specs, made)}, U.Params()
+    rooms, per_view = F.build_floor_plan(
+        [m[0] for m in made], {s[0]: m[1] for s, m in zip(specs, made)}, **U.plan_settings(P)
     )
     assert len(rooms) == 2
     by_views = {tuple(r.views): r for r in rooms}
@@ -234,7 +238,7 @@ def test_tilted_camera_and_polygon_not_around_camera_warn():
         camera_height_assumed=False,
     )
     warnings = []
-    U.build_floor_plan([vl], {"a": pose}, U.Params(), warnings.append)
+    F.build_floor_plan([vl], {"a": pose}, **U.plan_settings(P), warn=warnings.append)
     assert any("tilted 10.0 deg" in w for w in warnings)
     assert any("outside its own floor polygon" in w for w in warnings)
 
@@ -273,7 +277,7 @@ def test_layout_stage_to_union_to_sampling(tmp_path):
             out_dir=dirs["union"],
         )
     )
-    iou = U.polygon_iou(U.room_shape(uo.rooms[0]), _gt_shape(scene_dir))
+    iou = F.polygon_iou(F.room_shape(uo.rooms[0]), _gt_shape(scene_dir))
     print(f"two-rooms IoU (layout stage on the simulator's JSON): {iou:.6f}")
     assert len(uo.rooms) == 1 and iou >= 0.98
     gt = _gt(scene_dir)
