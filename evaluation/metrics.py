@@ -193,6 +193,35 @@ def depth_metrics(pred, gt, mask=None) -> dict[str, float | int]:
     }
 
 
+def view_metrics(render: np.ndarray, gt: np.ndarray, lpips_model=None, mask: np.ndarray | None = None,
+                 flat: np.ndarray | None = None) -> dict[str, float | None]:
+    """PSNR / SSIM / WS-PSNR (and LPIPS with a model) of one rendered panorama, over the valid
+    pixels of `mask` ([H,W] bool; None = all). LPIPS sees both images with masked pixels zeroed.
+    With `flat` (an RGB colour), also the PSNR and SSIM of an image of that one colour: the floor."""
+    keep = None if mask is None else mask[..., None]
+    fitted = colour_fit(render, gt, mask)  # exposure and white balance factored out
+    return {
+        "psnr": psnr(render, gt, mask=mask),
+        "ssim": ssim(render, gt, mask=mask),
+        "ws_psnr": ws_psnr(render, gt, mask=mask),
+        "lpips": (lpips_model.distance(render if keep is None else render * keep, gt if keep is None else gt * keep)
+                  if lpips_model is not None else None),
+        "psnr_colorfit": psnr(fitted, gt, mask=mask),
+        "ssim_colorfit": ssim(fitted, gt, mask=mask),
+        **flat_metrics(flat, gt, mask),
+    }
+
+
+def flat_metrics(flat: np.ndarray | None, gt: np.ndarray, mask: np.ndarray | None = None) -> dict[str, float | None]:
+    """`flat_psnr` and `flat_ssim`: the PSNR and SSIM of an image of the one colour `flat` against `gt`
+    over `mask` (both None without a colour)."""
+    if flat is None:
+        return {"flat_psnr": None, "flat_ssim": None}
+    image = np.broadcast_to(np.asarray(flat, gt.dtype), gt.shape)
+    return {"flat_psnr": psnr(image, gt, mask=mask), "flat_ssim": ssim(image, gt, mask=mask)}
+
+
+
 # -- LPIPS ----------------------------------------------------------------------
 LPIPS_ENV = "PANO_PIPE_LPIPS_WEIGHTS"
 OFFLINE_ENV = "PANO_PIPE_OFFLINE"  # set: never download weights (tests, air-gapped machines)

@@ -46,7 +46,8 @@ class View(BaseModel):
         default=None, description="Supplied depth (distance along the ray): .png uint16 mm or .npy metres."
     )
     gt_depth: str | None = Field(
-        default=None, description="Ground-truth depth (.npy metres) for evaluation only; never used to train."
+        default=None, description="Ground-truth depth (.png uint16 mm or .npy metres, as `depth`) for evaluation only; "
+                                  "never used to train."
     )
     mask: str | None = Field(
         default=None, description="Valid-pixel mask (.png, non-zero = valid; resized to any working size); "

@@ -9,7 +9,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from runfs.errors import PanoError, describe_validation_error, read_json
-from runfs.limits import MIN_IMAGE_HEIGHT, check_image_size, image_size, max_megapixels, read_image
+from runfs.limits import MIN_IMAGE_HEIGHT, check_image_size, image_size, load_npy, max_megapixels, read_image
 from schemas.scene import Scene, SceneManifest, View
 
 def load_scene(root: str | Path, check_images: bool = True) -> Scene:
@@ -102,3 +102,37 @@ def _decoded_size(path: Path) -> tuple[int, int]:
     if img is None:
         raise PanoError(path, "unreadable image (not a format OpenCV can decode)")
     return img.shape[:2]
+
+
+def read_depth_file(path: str | Path) -> np.ndarray:
+    """A supplied depth map in metres along the ray, float32 [H,W]; NaN where the file says invalid."""
+    path = Path(path)
+    if path.suffix.lower() == ".png":
+        raw = read_image(path, what="depth map")
+        if raw is None:
+            raise PanoError(path, "unreadable depth PNG")
+        if raw.dtype != np.uint16 or raw.ndim != 2:
+            ch = 1 if raw.ndim == 2 else raw.shape[2]
+            raise PanoError(
+                path, f"depth PNG must be 16-bit single-channel millimetres, got {raw.dtype} x{ch}"
+            )
+        depth = raw.astype(np.float32) / 1000.0
+        depth[raw == 0] = np.nan
+    elif path.suffix.lower() == ".npy":
+        depth = load_npy(path, pixels=True)
+        if depth.ndim == 3 and depth.shape[-1] == 1:
+            depth = depth[..., 0]
+        if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.number):
+            raise PanoError(
+                path, f"depth .npy must be a numeric [H,W] array, got {depth.dtype} {list(depth.shape)}"
+            )
+        depth = depth.astype(np.float32)
+    else:
+        raise PanoError(path, "depth file must be .png (uint16 mm) or .npy (float metres)")
+    h, w = depth.shape
+    if w != 2 * h:
+        raise PanoError(path, f"depth map is {w}x{h} (width x height); expected a 2:1 equirectangular map, "
+                              f"e.g. {2 * h}x{h}")
+    if h < 4:
+        raise PanoError(path, f"depth map is {w}x{h}; too small (at least 8x4)")
+    return depth

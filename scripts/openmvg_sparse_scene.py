@@ -132,7 +132,8 @@ def diagnose_run(scene, run: Path) -> list[dict]:
     from pipeline.engine import complete_scene, read_meta, read_output
     from pipeline.registry import build_registry
     from schemas.scene_loader import valid_mask
-    from stages.evaluate import flat_metrics, stitch_rig, training_mean_colour
+    from evaluation.metrics import flat_metrics
+    from stages.evaluate import stitch_rig, training_mean_colour
 
     done = complete_scene(scene, run, build_registry())
     tdata, ev = read_output(run, "train"), read_output(run, "evaluate")

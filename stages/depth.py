@@ -29,9 +29,9 @@ from pydantic import Field
 
 from models.store import fetch_hint, model_label
 from runfs.errors import PanoError
-from runfs.limits import load_npy, read_image
 from runtime.stage import StageContext
 from schemas.depth import DepthOutput, ViewDepth
+from schemas.scene_loader import read_depth_file
 from schemas.scene import Scene, View
 from schemas.stage_params import StageParams
 
@@ -166,40 +166,6 @@ def hint(scene: Scene, params: Params) -> str | None:
 
 
 # ----------------------------------------------------------------------------- pure helpers
-
-
-def read_depth_file(path: str | Path) -> np.ndarray:
-    """A supplied depth map in metres along the ray, float32 [H,W]; NaN where the file says invalid."""
-    path = Path(path)
-    if path.suffix.lower() == ".png":
-        raw = read_image(path, what="depth map")
-        if raw is None:
-            raise PanoError(path, "unreadable depth PNG")
-        if raw.dtype != np.uint16 or raw.ndim != 2:
-            ch = 1 if raw.ndim == 2 else raw.shape[2]
-            raise PanoError(
-                path, f"depth PNG must be 16-bit single-channel millimetres, got {raw.dtype} x{ch}"
-            )
-        depth = raw.astype(np.float32) / 1000.0
-        depth[raw == 0] = np.nan
-    elif path.suffix.lower() == ".npy":
-        depth = load_npy(path, pixels=True)
-        if depth.ndim == 3 and depth.shape[-1] == 1:
-            depth = depth[..., 0]
-        if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.number):
-            raise PanoError(
-                path, f"depth .npy must be a numeric [H,W] array, got {depth.dtype} {list(depth.shape)}"
-            )
-        depth = depth.astype(np.float32)
-    else:
-        raise PanoError(path, "depth file must be .png (uint16 mm) or .npy (float metres)")
-    h, w = depth.shape
-    if w != 2 * h:
-        raise PanoError(path, f"depth map is {w}x{h} (width x height); expected a 2:1 equirectangular map, "
-                              f"e.g. {2 * h}x{h}")
-    if h < 4:
-        raise PanoError(path, f"depth map is {w}x{h}; too small (at least 8x4)")
-    return depth
 
 
 def mask_invalid(values: np.ndarray, kind: str, near: float = 0.0, far: float = np.inf) -> np.ndarray:

@@ -27,8 +27,8 @@ from evaluation.model_io import equirect_camera, load_model, recorded_background
 from evaluation.visuals import depth_rgb, error_rgb
 from panogeom.images import read_rgb, write_rgb
 from runfs.errors import PanoError
-from runfs.limits import load_npy, read_image
-from schemas.scene_loader import valid_mask
+from runfs.limits import read_image
+from schemas.scene_loader import read_depth_file, valid_mask
 from runtime.stage import Loaded, StageContext
 from schemas.evaluate import EvaluateOutput, ViewMetrics
 from schemas.scene import Scene, View
@@ -97,34 +97,6 @@ def describe_mask(scene, view) -> str | None:
     return " + ".join(parts) or None
 
 
-def view_metrics(render: np.ndarray, gt: np.ndarray, lpips_model=None, mask: np.ndarray | None = None,
-                 flat: np.ndarray | None = None) -> dict[str, float | None]:
-    """PSNR / SSIM / WS-PSNR (and LPIPS with a model) of one rendered panorama, over the valid
-    pixels of `mask` ([H,W] bool; None = all). LPIPS sees both images with masked pixels zeroed.
-    With `flat` (an RGB colour), also the PSNR and SSIM of an image of that one colour: the floor."""
-    keep = None if mask is None else mask[..., None]
-    fitted = M.colour_fit(render, gt, mask)  # exposure and white balance factored out
-    return {
-        "psnr": M.psnr(render, gt, mask=mask),
-        "ssim": M.ssim(render, gt, mask=mask),
-        "ws_psnr": M.ws_psnr(render, gt, mask=mask),
-        "lpips": (lpips_model.distance(render if keep is None else render * keep, gt if keep is None else gt * keep)
-                  if lpips_model is not None else None),
-        "psnr_colorfit": M.psnr(fitted, gt, mask=mask),
-        "ssim_colorfit": M.ssim(fitted, gt, mask=mask),
-        **flat_metrics(flat, gt, mask),
-    }
-
-
-def flat_metrics(flat: np.ndarray | None, gt: np.ndarray, mask: np.ndarray | None = None) -> dict[str, float | None]:
-    """`flat_psnr` and `flat_ssim`: the PSNR and SSIM of an image of the one colour `flat` against `gt`
-    over `mask` (both None without a colour)."""
-    if flat is None:
-        return {"flat_psnr": None, "flat_ssim": None}
-    image = np.broadcast_to(np.asarray(flat, gt.dtype), gt.shape)
-    return {"flat_psnr": M.psnr(image, gt, mask=mask), "flat_ssim": M.ssim(image, gt, mask=mask)}
-
-
 def training_mean_colour(scene: Scene, size: tuple[int, int]) -> np.ndarray | None:
     """The posed training panoramas' mean colour over their valid pixels at `size` (None without
     any): the flat image each view is also scored as (`flat_psnr`, `flat_ssim`). Where a model
@@ -179,18 +151,7 @@ def eval_size(params: Params, train_resolution, image_shape: tuple[int, int]) ->
 def load_gt_depth(path: Path, size: tuple[int, int]) -> np.ndarray:
     """Ground-truth distance along the ray (.npy metres, or .png uint16 mm) at (H, W); nearest
     resampling so depth edges are not blended into values no surface has."""
-    if path.suffix == ".npy":
-        d = load_npy(path, pixels=True)
-        if not np.issubdtype(d.dtype, np.number):
-            raise PanoError(path, f"ground-truth depth must be numeric, got {d.dtype}")
-        d = d.astype(np.float32)
-    else:
-        raw = read_image(path, what="depth map")
-        if raw is None:
-            raise PanoError(path, "unreadable depth image")
-        d = raw.astype(np.float32) / 1000.0
-    if d.ndim != 2:
-        raise PanoError(path, f"ground-truth depth must be [H,W], got shape {list(d.shape)}")
+    d = read_depth_file(path)  # the scene's depth format, as the depth stage reads supplied maps
     if d.shape != tuple(size):
         d = cv2.resize(d, (size[1], size[0]), interpolation=cv2.INTER_NEAREST)
     return d
@@ -294,7 +255,7 @@ def run(ctx: StageContext) -> EvaluateOutput:
             mask = valid_mask(ctx.scene, v, *size)
             if not flat_known:  # once: the mean colour hardly depends on the size
                 flat, flat_known = training_mean_colour(ctx.scene, size), True
-            m = view_metrics(r.image, gt, lpips_model, mask, flat)
+            m = M.view_metrics(r.image, gt, lpips_model, mask, flat)
             row = {"view": v.name, "split": split, **m, "render_seconds": r.seconds}
             gt_depth_path = ctx.scene.gt_depth_path(v)
             dm = None

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from runfs.errors import PanoError
+from schemas.scene_loader import read_depth_file
 from stages import depth as depth_stage
 
 
@@ -38,7 +39,7 @@ def test_npy_with_nan_zero_inf_and_far_pixels_is_masked(dk, scene, tmp_path):
     d[4, :5] = 500.0  # beyond far_limit
     path = tmp_path / "d.npy"
     np.save(path, d)
-    out = depth_stage.mask_invalid(depth_stage.read_depth_file(path), "metric", 0.05, 100.0)
+    out = depth_stage.mask_invalid(read_depth_file(path), "metric", 0.05, 100.0)
     assert np.isnan(out[:5, :5]).all()
     assert np.isfinite(out[5:]).all() and np.allclose(out[5:], d[5:])
 
@@ -47,7 +48,7 @@ def test_zero_in_png_is_invalid(tmp_path):
     mm = np.full((16, 32), 2500, np.uint16)
     mm[3, 4] = 0
     cv2.imwrite(str(tmp_path / "d.png"), mm)
-    d = depth_stage.read_depth_file(tmp_path / "d.png")
+    d = read_depth_file(tmp_path / "d.png")
     assert np.isnan(d[3, 4]) and np.isclose(np.nanmean(d), 2.5)
 
 
@@ -64,7 +65,7 @@ def test_bad_depth_files_get_one_line_errors(tmp_path, make, match):
     make(tmp_path)
     path = next(tmp_path.glob("d.*"))
     with pytest.raises(PanoError, match=match) as e:
-        depth_stage.read_depth_file(path)
+        read_depth_file(path)
     assert "\n" not in str(e.value) and str(path) in str(e.value)
 
 

@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-
 from evalhelpers import fake_lpips_state, write_train_artifact
-from evaluation import metrics as M
-from stages.evaluate import Params, view_metrics
-
 from test_eval_stage import _run
+
+from evaluation import metrics as M
+from evaluation.metrics import view_metrics
+from stages.evaluate import Params
 
 
 @pytest.fixture
