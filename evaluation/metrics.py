@@ -24,7 +24,6 @@ import importlib.util
 import io
 import math
 import os
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 

@@ -9,9 +9,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import resource
 import shutil
-import signal
 from html.parser import HTMLParser
 
 import pytest

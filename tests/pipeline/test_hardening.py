@@ -17,7 +17,6 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline import cli
 from pipeline.signals import Terminated
 from tests.clitools import invoke, run_main
 from runfs.fsutil import run_folder_lock
