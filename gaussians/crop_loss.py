@@ -4,7 +4,7 @@
 (by default the paper's eight 120° crops) with bilinear `grid_sample`, differentiably: a 360 model
 is then rendered as a panorama but supervised as the crops baseline is (the same crops, the same
 resampling of the ground truth, L1 and 11×11 SSIM on undistorted images), every crop each iteration.
-The sampling is the one `stages.train.crop_image` does with cv2.remap (wrapping across the ±180°
+The sampling is the one `panogeom.resample.perspective_crop` does with cv2.remap (wrapping across the ±180°
 seam, edge rows clamped).
 """
 

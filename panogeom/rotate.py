@@ -9,7 +9,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from panogeom.equirect import angles_to_pixel, dirs_to_angles, ray_directions
+from panogeom.equirect import ray_directions
+from panogeom.resample import sample_along
 
 __all__ = ["rotate_equirect", "yaw_matrix", "level_rotation", "yaw_tilt_deg"]
 
@@ -44,11 +45,5 @@ def rotate_equirect(image: np.ndarray, rotation: np.ndarray, size: tuple[int, in
     """The panorama turned by `rotation` (out(d) = image(Rᵀ d)), at `size` (H, W; default the input's).
     Bilinear, periodic across the ±180° seam; a rotation about +y by a multiple of the pixel
     pitch is an exact column roll."""
-    h_in, w_in = image.shape[:2]
-    h, w = size or (h_in, w_in)
-    src = ray_directions(h, w) @ np.asarray(rotation, dtype=np.float64)  # Rᵀ d, row vectors
-    col, row = angles_to_pixel(*dirs_to_angles(src), h_in, w_in)
-    pad = 2  # wrap columns so bilinear reads across the seam
-    padded = np.concatenate([image[:, -pad:], image, image[:, :pad]], axis=1)
-    return cv2.remap(padded, (col + pad).astype(np.float32), row.astype(np.float32), interpolation,
-                     borderMode=cv2.BORDER_REPLICATE)
+    h, w = size or image.shape[:2]
+    return sample_along(image, ray_directions(h, w) @ np.asarray(rotation, dtype=np.float64), interpolation)  # Rᵀ d

@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 from scipy.ndimage import median_filter
 
+from panogeom.resample import remap_equirect
 from sfm.frame import Floor, FloorCue
 from sfm.records import Panorama
 
@@ -112,27 +113,6 @@ def edge_image(pano: Panorama) -> tuple[np.ndarray, np.ndarray]:
     return out[0], out[1]
 
 
-def _bilinear(img: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
-    """[..., C] bilinear samples of an [H,W,C] float32 image at continuous (col, row), periodic in
-    col, clamped in row (cv2.remap on the image padded by two columns each side)."""
-    h, w, c = img.shape
-    padded = np.concatenate([img[:, -2:], img, img[:, :2]], axis=1)
-    shape = col.shape
-    n = col.size
-    width = 1024  # remap's maps are images: fold the samples into rows of this many
-    rows = -(-n // width)
-    maps = []
-    for x, offset in ((col, 2.0), (row, 0.0)):
-        flat = np.zeros(rows * width, np.float32)
-        flat[:n] = np.asarray(x, np.float32).ravel()
-        if offset:
-            flat = np.mod(flat + 0.5, w) - 0.5 + offset
-        maps.append(flat.reshape(rows, width))
-    maps[1] = np.clip(maps[1], 0.0, h - 1.0)
-    out = cv2.remap(padded, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return out.reshape(rows * width, c)[:n].reshape(*shape, c)
-
-
 @dataclass
 class _ViewVotes:
     """The observations of one panorama: where their feet land for a level."""
@@ -153,7 +133,7 @@ class _ViewVotes:
         lat = np.arctan2(-d[..., 1], np.hypot(d[..., 0], d[..., 2]))
         col = (lon * np.float32(0.5 / np.pi) + np.float32(0.5)) * w - np.float32(0.5)
         row = (np.float32(0.5) - lat * np.float32(1 / np.pi)) * h - np.float32(0.5)
-        samples = _bilinear(self.image, col, row)  # [L,M,2]
+        samples = remap_equirect(self.image, col, row)  # [L,M,2]
         # a point lies on or above the floor, never under it; and a foot next to its point lands on
         # the point's own texture (it is a feature), not on a boundary
         along = np.sum(d * a[None], axis=-1) / np.maximum(

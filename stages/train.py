@@ -16,7 +16,6 @@ import time
 from pathlib import Path
 from typing import Literal
 
-import cv2
 import numpy as np
 import torch
 from pydantic import Field, field_validator, model_validator
@@ -28,8 +27,8 @@ from gaussians.init import from_cloud, random_points
 from gaussians.model import DEFAULT_EPS2D, Gaussians
 from gaussians.ply import nonfinite_problem, save_ply
 from gaussians.trainer import CHECKPOINT_NAME, Trainer, TrainView, scene_extent
-from panogeom.equirect import angles_to_pixel, dirs_to_angles
 from panogeom.images import read_rgb
+from panogeom.resample import perspective_crop
 from runfs.errors import PanoError, one_line
 from runtime.stage import StageContext
 from schemas.scene import Scene, View
@@ -334,23 +333,6 @@ def subsample_cloud(cloud: dict, max_points: int, seed: int) -> dict:
     return {k: v[idx] for k, v in cloud.items()}
 
 
-def crop_image(pano: np.ndarray, crop_viewmat: np.ndarray, camera) -> np.ndarray:
-    """Resample a perspective crop (a PerspectiveRig crop's rotation and PinholeCamera) from an
-    equirectangular image with cv2.remap (bilinear, wrapping across the ±180° seam)."""
-    h, w = pano.shape[:2]
-    fh, fw = int(camera.height), int(camera.width)
-    c, r = np.meshgrid(np.arange(fw) + 0.5, np.arange(fh) + 0.5)
-    d_crop = np.stack([(c - camera.cx) / camera.fx, (r - camera.cy) / camera.fy, np.ones_like(c)], -1)
-    rot = np.asarray(crop_viewmat, dtype=np.float64)[:3, :3]
-    d_pano = d_crop @ rot  # rows of rot are the crop axes in the panorama frame: d_pano = rotᵀ d_crop
-    phi, theta = dirs_to_angles(d_pano)
-    col, row = angles_to_pixel(phi, theta, h, w)
-    padded = np.concatenate([pano[:, -1:], pano, pano[:, :1]], axis=1)  # one wrapped column each side
-    mx = (np.mod(col + 0.5, w) - 0.5 + 1.0).astype(np.float32)
-    my = np.clip(row, 0, h - 1).astype(np.float32)
-    return cv2.remap(padded, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-
-
 def build_views(images: dict[str, np.ndarray], viewmats: dict[str, np.ndarray], projection: str,
                 masks: dict[str, np.ndarray | None] | None = None,
                 rig: splatting.PerspectiveRig | None = None) -> list[TrainView]:
@@ -369,12 +351,12 @@ def build_views(images: dict[str, np.ndarray], viewmats: dict[str, np.ndarray], 
             continue
         crops = rig or Params(projection=projection).rig(h)
         for crop, (cv, cam) in zip(crops.names, crops.crops()):
-            gt = crop_image(img, cv.numpy(), cam)
+            gt = perspective_crop(img, cv.numpy(), cam)
             crop_mask = None
             if mask is not None:
                 # a crop pixel is valid when the bilinear sample draws only on valid panorama pixels
-                m = crop_image(np.repeat(mask[..., None].astype(np.float32), 3, axis=2), cv.numpy(), cam)
-                crop_mask = torch.from_numpy(np.ascontiguousarray(m[..., 0] > 0.999))
+                m = perspective_crop(mask.astype(np.float32), cv.numpy(), cam)
+                crop_mask = torch.from_numpy(np.ascontiguousarray(m > 0.999))
                 if not bool(crop_mask.any()):
                     continue  # a crop wholly masked out (the nadir face under a big cap) is not trained on
             out.append(TrainView(f"{name}/{crop}", torch.from_numpy(np.ascontiguousarray(gt)), cv @ vm, cam,

@@ -9,15 +9,16 @@ import math
 import numpy as np
 import pytest
 import torch
+from test_stage import ctx_for
 
 import splatting
 import stages.train as T
 from gaussians.densify import gradient_scale
 from gaussians.losses import l1_loss
+from panogeom.resample import perspective_crop
 from runfs.errors import PanoError
-from schemas.scene_loader import load_scene
 from runtime.stage import Loaded, StageContext
-from test_stage import ctx_for
+from schemas.scene_loader import load_scene
 
 
 def smooth_panorama(h: int, w: int) -> np.ndarray:
@@ -31,7 +32,7 @@ def test_crops_resampled_from_a_panorama_stitch_back_to_it(projection):
     h, w = 64, 128
     pano = smooth_panorama(h, w)
     rig = T.Params(projection=projection).rig(h)
-    crops = np.stack([T.crop_image(pano, cv.numpy(), cam) for cv, cam in rig.crops()])
+    crops = np.stack([perspective_crop(pano, cv.numpy(), cam) for cv, cam in rig.crops()])
     back = splatting.stitch(torch.from_numpy(crops), h, w, rig).numpy()
     err = np.abs(back - pano)
     # two bilinear resamplings of a smooth image: small everywhere

@@ -106,20 +106,20 @@ def test_every_shared_setting_reaches_the_trainer():
 
 
 def test_crop_resampler_matches_the_baselines_crops_and_passes_gradients():
-    """The differentiable resampling gives the crops the baseline trains on (stages.train.crop_image,
+    """The differentiable resampling gives the crops the baseline trains on (panogeom.resample.perspective_crop,
     cv2.remap), and the crop loss of a panorama against its own crops is 0 (SSIM 1)."""
     import numpy as np
 
     import splatting
     from gaussians.crop_loss import CropResampler, crop_photometric_loss
-    from stages.train import crop_image
+    from panogeom.resample import perspective_crop
 
     h = 24
     img = np.random.default_rng(0).random((h, 2 * h, 3)).astype(np.float32)
     rs = CropResampler(h, 2 * h)
     ours = rs(torch.from_numpy(img)).permute(0, 2, 3, 1).numpy()
     for k, (cv, cam) in enumerate(splatting.crop_rig(h).crops()):
-        assert np.abs(ours[k] - crop_image(img, cv.numpy(), cam)).max() < 1e-5
+        assert np.abs(ours[k] - perspective_crop(img, cv.numpy(), cam)).max() < 1e-5
     pred = torch.from_numpy(img).requires_grad_(True)
     gt = rs(torch.from_numpy(img))
     loss, l1, s = crop_photometric_loss(pred, gt, rs, 0.8, 0.2)

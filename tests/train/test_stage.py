@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import json
-import re
 import math
+import re
 
 import numpy as np
 import pytest
@@ -13,10 +13,11 @@ import torch
 import splatting
 import stages.train as T
 from gaussians import load_ply
+from panogeom.resample import perspective_crop
 from runfs.errors import PanoError
-from schemas.scene_loader import load_scene, valid_mask
 from runtime.stage import Loaded, StageContext
 from schemas.sampling import SamplingOutput
+from schemas.scene_loader import load_scene, valid_mask
 from schemas.train import TrainOutput
 from schemas.union import Room, UnionOutput
 from stages.cloud_io import write_cloud
@@ -158,7 +159,7 @@ def test_cube_face_resampling_matches_the_panorama():
     d = np.stack([np.cos(TH) * np.sin(P), -np.sin(TH), np.cos(TH) * np.cos(P)], -1)
     pano = (0.5 + 0.5 * d * np.array([0.9, 0.8, 0.7])).astype(np.float32)
     for fv, cam in splatting.cubemap_faces(32):
-        face = T.crop_image(pano, fv.numpy(), cam)
+        face = perspective_crop(pano, fv.numpy(), cam)
         dirs = cam.pixel_dirs(dtype=torch.float64).numpy()
         dirs = dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)
         expect = 0.5 + 0.5 * (dirs @ fv.numpy()[:3, :3]) * np.array([0.9, 0.8, 0.7])
