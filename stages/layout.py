@@ -11,22 +11,22 @@ Per view (train and test views alike; `union` uses the train ones):
 The camera height comes from scene.json, else 1.6 m (HorizonNet's
 convention) with a warning. Writes `<view>.boundaries.npy` (the fitted room's
 [2,W] latitudes at the image's width), `<view>.confidence.npy` ([W]) and, for
-model/.npy sources, `<view>.raw_boundaries.npy` (the source's own boundaries).
+model/.npy sources, `<view>.raw_boundaries.npy` (the source's own boundaries). The rooms are
+`layoutnet.rooms`'.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-import cv2
 import numpy as np
 from pydantic import Field
 
 from layoutnet import postprocess as pp
 from layoutnet.alignment import Alignment
-from layoutnet.formats import SuppliedLayout, read_layout
+from layoutnet.formats import read_layout
+from layoutnet.rooms import room_from_model, room_from_supplied
 from models.store import fetch_hint, model_label
 from runfs.errors import PanoError
 from runfs.limits import read_image
@@ -145,87 +145,9 @@ def _image_size(path: Path) -> tuple[int, int]:
     return img.shape[0], img.shape[1]
 
 
-# ----------------------------------------------------------------------------- pure helpers
-def room_from_supplied(
-    sup: SuppliedLayout, camera_height: float, params: Params
-) -> tuple[pp.RoomLayout, np.ndarray | None]:
-    """A supplied layout → (room, the source's boundaries or None for corner formats)."""
-    if sup.boundaries is not None:
-        room = pp.layout_from_boundaries(
-            sup.boundaries,
-            camera_height,
-            mode=params.mode,
-            wall_source=params.wall_source,
-            peak_r=params.peak_r,
-            peak_min=params.peak_min,
-        )
-        return room, sup.boundaries
-    c = sup.corners
-    if sup.ceiling_ratio is not None:
-        ceiling = sup.ceiling_ratio * camera_height
-    else:  # each corner's floor point fixes its distance, its ceiling point then the ceiling
-        ceiling = pp.mean_percentile(camera_height * np.tan(c[:, 1]) / np.tan(-c[:, 2]))
-    poly = pp.corners_to_polygon(c[:, 0], c[:, 1], c[:, 2], camera_height, ceiling)
-    return pp.RoomLayout(poly, camera_height, float(ceiling), "corners"), None
-
-
-def room_from_model(
-    model, rgb: np.ndarray, camera_height: float, params: Params
-) -> tuple[pp.RoomLayout, np.ndarray]:
-    """Run the ONNX model on an RGB panorama ([H,W,3] in [0,1], any 2:1 size) and post-process
-    (no alignment: the panorama is taken as it is)."""
-    x = cv2.resize(rgb, (1024, 512), interpolation=cv2.INTER_AREA if rgb.shape[0] > 512 else cv2.INTER_LINEAR)
-    bounds, cor = model.predict(x, tta=params.tta)
-    room = pp.layout_from_boundaries(
-        bounds,
-        camera_height,
-        cor=cor,
-        mode=params.mode,
-        wall_source=params.wall_source,
-        peak_r=params.peak_r,
-        peak_min=params.peak_min,
-    )
-    return room, bounds
-
-
-@dataclass
-class ModelLayout:
-    """A model's room in the view's own frame (see `layout_from_model`)."""
-
-    room: pp.RoomLayout
-    boundaries: np.ndarray  # [2,width] the fitted room in the view's image
-    raw: np.ndarray  # [2,1024] the model's own boundaries, in the view's image
-    confidence: np.ndarray  # [width]
-    alignment: Alignment | None
-
-
-def layout_from_model(model, rgb: np.ndarray, camera_height: float, params: Params, width: int,
-                      down: np.ndarray | None = None) -> ModelLayout:
-    """The model on the panorama turned into its room's frame (params.align), the room turned back
-    into the view's frame (layoutnet.alignment.room_in_view). `down`: gravity in the view's frame
-    when the pose gives it (align=auto)."""
-    from layoutnet.alignment import MIN_APPLIED_DEG, estimate_alignment, room_in_view
-    from panogeom.rotate import rotate_equirect
-
-    small = cv2.resize(rgb, (1024, 512), interpolation=cv2.INTER_AREA if rgb.shape[0] > 512 else cv2.INTER_LINEAR)
-    alignment = None
-    if params.align != "off":
-        alignment = estimate_alignment(small, down=down if params.align == "auto" else None,
-                                       max_tilt_deg=params.max_tilt_deg)
-        if alignment.angle_deg < MIN_APPLIED_DEG:
-            alignment.rotation = np.eye(3)
-    if alignment is None or alignment.angle_deg == 0.0:
-        room, raw = room_from_model(model, small, camera_height, params)
-        fitted = pp.polygon_to_boundaries(room.polygon, room.camera_height, room.ceiling_distance, width)
-        conf = pp.column_confidence(raw, pp.polygon_to_boundaries(
-            room.polygon, room.camera_height, room.ceiling_distance, raw.shape[1]))
-        conf = pp.resample_boundaries(conf[None].astype(np.float64), width)[0]
-        room.notes += alignment.notes if alignment else []
-        return ModelLayout(room, fitted, raw, conf, alignment)
-    room, raw = room_from_model(model, rotate_equirect(small, alignment.rotation), camera_height, params)
-    view_room, fitted, raw_view, conf = room_in_view(room, raw, alignment.rotation, width)
-    view_room.notes += alignment.notes
-    return ModelLayout(view_room, fitted, raw_view, conf, alignment)
+def wall_fit(p: Params) -> dict:
+    """How walls are fitted to boundaries (`layoutnet.rooms`' keywords) from the stage's settings."""
+    return {"mode": p.mode, "wall_source": p.wall_source, "peak_r": p.peak_r, "peak_min": p.peak_min}
 
 
 def _alignment_record(a: Alignment | None) -> LayoutAlignment | None:
@@ -264,28 +186,22 @@ def run(ctx: StageContext[Params]) -> LayoutOutput:
             assumed.append(view.name)
         img_path = scene.image_path(view)
         height, width = _image_size(img_path)
-        alignment = None
         if src is not None:
             sup = read_layout(src, width, height)
             try:
-                room, raw = room_from_supplied(sup, h, params)
+                got = room_from_supplied(sup, h, width, **wall_fit(params))
             except ValueError as e:
                 raise PanoError(src, str(e)) from None
             source = sup.kind
-            fitted = pp.polygon_to_boundaries(room.polygon, room.camera_height, room.ceiling_distance, width)
-            if raw is not None:
-                conf = pp.column_confidence(raw, fitted)
-                conf = pp.resample_boundaries(conf[None].astype(np.float64), width)[0]
-            else:
-                conf = np.ones(width)
         else:
             down = np.asarray(view.pose, dtype=np.float64)[1, :3] if view.pose is not None else None
             try:
-                got = layout_from_model(model, read_rgb(img_path), h, params, width, down=down)
+                got = room_from_model(model, read_rgb(img_path), h, width, align=params.align,
+                                      max_tilt_deg=params.max_tilt_deg, tta=params.tta, down=down, **wall_fit(params))
             except ValueError as e:  # e.g. NaN outputs
                 raise PanoError(model_path, f"view {view.name}: unusable output: {e}") from None
-            room, raw, fitted, conf, alignment = got.room, got.raw, got.boundaries, got.confidence, got.alignment
             source = "model"
+        room, raw, fitted, conf, alignment = got.room, got.raw, got.boundaries, got.confidence, got.alignment
         conf = np.asarray(conf, dtype=np.float32)
         for note in room.notes:
             ctx.warn(f"view {view.name}: {note}")

@@ -15,11 +15,14 @@ from runfs.errors import PanoError
 H_CAM, H_ROOM = 1.45, 2.7
 
 
-def _room_from(sup, h=H_CAM):
-    from stages.layout import Params, room_from_supplied
+def _room_from(sup, h=H_CAM, width=256):
+    """The room and the source's boundaries, with the layout stage's default wall fitting."""
+    from layoutnet.rooms import room_from_supplied
+    from stages.layout import Params, wall_fit
 
-    room, raw = room_from_supplied(sup, h, Params())
-    return room, raw
+    got = room_from_supplied(sup, h, width, **wall_fit(Params()))
+    assert got.boundaries.shape == (2, width) and got.confidence.shape == (width,)
+    return got.room, got.raw
 
 
 @pytest.mark.parametrize("size", [(512, 1024), (64, 128)])
