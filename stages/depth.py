@@ -164,7 +164,6 @@ def hint(scene: Scene, params: Params) -> str | None:
             f"{fetch_hint('depth')}")
 
 
-
 # ----------------------------------------------------------------------------- pure helpers
 
 
