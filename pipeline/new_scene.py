@@ -3,7 +3,9 @@
 The panoramas go to `SCENE/images/` (copied, or hard-linked with `--link`: a symbolic link
 would lead out of the scene folder, which scenes refuse, docs/security.md), each view named
 after its file (made a safe, unique stem as the importers do, pipeline/importers.py). No
-poses: the poses stage recovers them. Every panorama is checked (a file, decodable,
+poses: the poses stage recovers them, except for a single panorama, which has nothing to be placed
+against: its camera is the world frame (the identity pose: at the origin and level, as the upright
+solvers take every panorama to be). Every panorama is checked (a file, decodable,
 2:1) before anything is written, and the folder is written whole or not at all
 (runfs.fsutil.atomic_folder), as the importers write theirs.
 """
@@ -57,11 +59,13 @@ def new_scene(out: Path, panoramas: list[Path], *, link: bool = False, test_ever
     if "train" not in splits:
         raise PanoError("--test-every", f"{test_every} makes every panorama a test view")
     names = unique_names([sanitize_stem(src.stem) for src in sources])
+    # one panorama is the world frame; several are placed relative to each other by the poses stage
+    pose = [[float(i == j) for j in range(4)] for i in range(4)] if len(sources) == 1 else None
     views = []
     for view_name, src, split in zip(names, sources, splits):
         try:
             views.append(View(name=view_name, image=f"images/{view_name}{_image_suffix(src)}", split=split,
-                              camera_height=camera_height))
+                              camera_height=camera_height, pose=pose))
         except ValidationError as e:
             raise describe_validation_error(src, e) from None
     manifest = _manifest(views, out, name if name is not None else sanitize_stem(out.name, fallback="scene"),
@@ -123,4 +127,7 @@ def new_command(
                          f"images {'linked' if link else 'copied'}; nadir_mask_deg {nadir_mask_deg:g}; "
                          f"the settings for captured panoramas in {path.parent / SCENE_CONFIG})"),
                   soft_wrap=True)
+    if len(panoramas) == 1:
+        console.print("one panorama: its camera is the world frame (the identity pose, level as captured); "
+                      "add more panoramas to recover poses between them", soft_wrap=True, highlight=False)
     console.print(escape(f"next: pano-pipe run all {shlex.quote(str(scene))}"), soft_wrap=True)

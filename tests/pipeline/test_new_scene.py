@@ -98,3 +98,23 @@ def test_bad_input_is_one_line_naming_the_file_and_writes_nothing(tmp_path, phot
     assert sorted(p.name for p in tmp_path.iterdir()) == before  # no scene, no temporary folder
     if case == "non-empty scene folder":
         assert [p.name for p in out.iterdir()] == ["notes.txt"]
+
+
+def test_one_panorama_is_the_world_frame_and_runs_without_the_poses_stage(tmp_path, photos, capsys):
+    """A single panorama has nothing to be placed against: `new` gives it the identity pose (the poses
+    stage would refuse one panorama), so `run all` can go from it with a supplied layout."""
+    out = tmp_path / "one"
+    code, stdout, err = invoke(["new", out, photos[0], "--camera-height", "1.5"], capsys)
+    assert code == 0, err
+    (view,) = json.loads((out / "scene.json").read_text())["views"]
+    assert view["pose"] == np.eye(4).tolist() and view["split"] == "train"
+    assert "world frame" in stdout
+    scene = load_scene(out)
+    assert not scene.manifest.unposed_views()
+    from stages import poses
+
+    assert poses.skip_reason(scene, poses.Params()) == "every view has a pose in scene.json"
+    # several panoramas still get no pose: the poses stage recovers them
+    code, _, err = invoke(["new", tmp_path / "two", *photos[:2]], capsys)
+    assert code == 0, err
+    assert all("pose" not in v for v in json.loads((tmp_path / "two" / "scene.json").read_text())["views"])
