@@ -23,11 +23,13 @@ def _engine(scene: Path, out: Path | None, config: Path | None = None, set_: lis
     return make_engine(scene, out, config, set_)
 
 
-def _print_mean(mean: dict[str, float | None]) -> None:
+def _print_mean(mean: dict[str, float | None], split: str) -> None:
+    """The mean metrics, named by the views they were measured on (training views where the scene
+    holds out none: a fit, not generalisation)."""
     from evaluation.report_text import fmt
 
     shown = ", ".join(f"{k} {fmt(v)}" for k, v in mean.items())
-    console.print(f"[bold]test metrics:[/] {shown}")
+    console.print(f"[bold]{split} metrics:[/] {shown}")
 
 
 def report_command(scene: SceneArg, out: OutOpt = None, config: ConfigOpt = None, set_: SetOpt = None) -> None:
@@ -48,7 +50,7 @@ def report_command(scene: SceneArg, out: OutOpt = None, config: ConfigOpt = None
     paths = build_report(run_dir, engine.completed_scene(), states=states)
     ev = read_output(run_dir, "evaluate")
     if ev is not None:
-        _print_mean(ev.mean)
+        _print_mean(ev.mean, ev.split)
     console.print(f"[bold]report:[/] {escape(str(paths.html))}")
     console.print(f"[bold]markdown:[/] {escape(str(paths.markdown))}")
 

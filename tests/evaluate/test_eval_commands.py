@@ -34,6 +34,23 @@ def test_report_command(run, sim_scene):
     assert html.count("<img") == 14 and "Stage durations" in html
     md = (run / "report" / "report.md").read_text()
     assert "| now |" in md  # engine states joined in
+    assert "test metrics:" in r.output
+
+
+def test_report_command_names_training_views_when_the_scene_holds_none_out(run, sim_scene, tmp_path):
+    """Without test views evaluate scores the training views (a fit): the command says so."""
+    import json
+    import shutil
+
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    artifact = copy / "evaluate" / "artifact.json"
+    doc = json.loads(artifact.read_text())
+    doc["data"].update(split="train", on_train_views=True)
+    artifact.write_text(json.dumps(doc))
+    r = CliRunner().invoke(app, ["report", str(sim_scene.root), "--out", str(copy)])
+    assert r.exit_code == 0, r.output
+    assert "train metrics:" in r.output and "test metrics" not in r.output
 
 
 def test_report_command_without_run_folder(sim_scene, tmp_path):
