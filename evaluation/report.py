@@ -364,7 +364,7 @@ def _model_cost_line(tr: dict | None, ev: dict) -> str | None:
                                                                                               td.get("projection"))
     how = f"test panoramas stitched from {ev['stitched']}" if ev.get("stitched") else "test panoramas rendered directly"
     return (f"Model: {fmt(td.get('num_gaussians'), ',')} Gaussians after {fmt(td.get('iterations'), ',')} "
-            f"iterations (one training image each{f', from {images} training images' if images else ''}) "
+            f"iterations (one training image each{f', from {images} training image' + 's' * (images != 1) if images else ''}) "
             f"in {fmt(td.get('train_seconds'), '.1f')} s of training{_kernel_build_note(td)}; {proj}, {how}.")
 
 
