@@ -45,7 +45,6 @@ from schemas.stage_params import StageParams
 
 Output = AlignOutput
 
-Kind = Literal["metric", "relative", "disparity"]
 LABELS = {name: k for k, name in enumerate(SURFACE_NAMES)}
 EQUATIONS = {"metric": "d = s*v", "relative": "d = s*v + t", "disparity": "1/d = s*v + t"}
 
