@@ -12,6 +12,7 @@ from runfs.errors import PanoError, describe_validation_error, read_json
 from runfs.limits import MIN_IMAGE_HEIGHT, check_image_size, image_size, load_npy, max_megapixels, read_image
 from schemas.scene import Scene, SceneManifest, View
 
+
 def load_scene(root: str | Path, check_images: bool = True) -> Scene:
     root = Path(root)
     if not root.exists():

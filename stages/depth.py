@@ -31,8 +31,8 @@ from models.store import fetch_hint, model_label
 from runfs.errors import PanoError
 from runtime.stage import StageContext
 from schemas.depth import DepthOutput, ViewDepth
-from schemas.scene_loader import read_depth_file
 from schemas.scene import Scene, View
+from schemas.scene_loader import read_depth_file
 from schemas.stage_params import StageParams
 
 Output = DepthOutput

@@ -23,15 +23,21 @@ import torch
 from pydantic import Field, field_validator
 
 from evaluation import metrics as M
-from evaluation.model_io import equirect_camera, load_model, recorded_background, render_on_device, render_pose
+from evaluation.model_io import (
+    equirect_camera,
+    load_model,
+    recorded_background,
+    render_on_device,
+    render_pose,
+)
 from evaluation.visuals import depth_rgb, error_rgb
 from panogeom.images import read_rgb, write_rgb
 from runfs.errors import PanoError
 from runfs.limits import read_image
-from schemas.scene_loader import read_depth_file, valid_mask
 from runtime.stage import Loaded, StageContext
 from schemas.evaluate import EvaluateOutput, ViewMetrics
 from schemas.scene import Scene, View
+from schemas.scene_loader import read_depth_file, valid_mask
 from schemas.stage_params import NAMES_FILE, StageParams
 from splatting import DEFAULT_TILE, MAX_TILE
 
