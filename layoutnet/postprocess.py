@@ -43,9 +43,18 @@ _EPS = 1e-3
 
 Mode = Literal["manhattan", "cuboid", "atlanta"]
 WallSource = Literal["both", "ceiling", "floor"]
+#: The wall fit's defaults (HorizonNet's post-processing); the layout stage's settings take them
+DEFAULT_MODE: Mode = "manhattan"
+DEFAULT_WALL_SOURCE: WallSource = "both"
+PEAK_R = 0.05  # corner non-maximum suppression window, a fraction of the width x2 (HorizonNet's r)
+PEAK_MIN = 0.05  # minimum corner probability
 
 __all__ = [
     "DEFAULT_CAMERA_HEIGHT",
+    "DEFAULT_MODE",
+    "DEFAULT_WALL_SOURCE",
+    "PEAK_R",
+    "PEAK_MIN",
     "RoomLayout",
     "check_boundaries",
     "estimate_ceiling_distance",
@@ -136,7 +145,7 @@ def resample_boundaries(boundaries: np.ndarray, width: int) -> np.ndarray:
 
 # -- corners ------------------------------------------------------------------
 def find_peaks_circular(
-    signal: np.ndarray, r: float = 0.05, min_v: float = 0.05, n: int | None = None
+    signal: np.ndarray, r: float = PEAK_R, min_v: float = PEAK_MIN, n: int | None = None
 ) -> np.ndarray:
     """Column indices of local maxima of a periodic signal (circular non-maximum
     suppression in a window of r*W/2 columns, as HorizonNet's find_N_peaks),
@@ -328,11 +337,11 @@ def layout_from_boundaries(
     boundaries: np.ndarray,
     camera_height: float = DEFAULT_CAMERA_HEIGHT,
     cor: np.ndarray | None = None,
-    mode: Mode = "manhattan",
+    mode: Mode = DEFAULT_MODE,
     ceiling_distance: float | None = None,
-    wall_source: WallSource = "both",
-    peak_r: float = 0.05,
-    peak_min: float = 0.05,
+    wall_source: WallSource = DEFAULT_WALL_SOURCE,
+    peak_r: float = PEAK_R,
+    peak_min: float = PEAK_MIN,
     tol: float | None = None,
 ) -> RoomLayout:
     """Boundaries [2,W] (+ optional corner probabilities `cor` [W'] in [0,1])

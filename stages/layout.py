@@ -59,8 +59,8 @@ class Params(StageParams):
     )
     threads: int = Field(default=2, ge=1, description="onnxruntime intra-op threads on CPU.")
     tta: bool = Field(default=False, description="Average the model over a flip and three circular rolls.")
-    mode: Literal["manhattan", "cuboid", "atlanta"] = Field(
-        default="manhattan",
+    mode: pp.Mode = Field(
+        default=pp.DEFAULT_MODE,
         description="Wall fitting of boundaries (model or .npy): Manhattan (HorizonNet), a cuboid, or "
         "walls at any angle (Atlanta). Corner files (.json/.txt) are used as given.",
     )
@@ -68,13 +68,13 @@ class Params(StageParams):
         default=pp.DEFAULT_CAMERA_HEIGHT, ge=MIN_CAMERA_HEIGHT, le=MAX_CAMERA_HEIGHT,
         description="Camera height (m) where scene.json has none."
     )
-    wall_source: Literal["both", "ceiling", "floor"] = Field(
-        default="both", description="Which boundary places the walls (both: the mean of the two distances)."
+    wall_source: pp.WallSource = Field(
+        default=pp.DEFAULT_WALL_SOURCE, description="Which boundary places the walls (both: the mean of the two distances)."
     )
     peak_r: float = Field(
-        default=0.05, gt=0, lt=1, description="Corner NMS window, a fraction of the width x2."
+        default=pp.PEAK_R, gt=0, lt=1, description="Corner NMS window, a fraction of the width x2."
     )
-    peak_min: float = Field(default=0.05, ge=0, lt=1, description="Minimum corner probability.")
+    peak_min: float = Field(default=pp.PEAK_MIN, ge=0, lt=1, description="Minimum corner probability.")
     splits: Literal["all", "train"] = Field(
         default="train", description="Which views get a layout: train (all the pipeline uses) or all.")
 
