@@ -69,9 +69,10 @@ class Params(StageParams):
         default=None, ge=64, le=4096, json_schema_extra={"pixels": "panorama_height"},
         description="Panoramas are resampled to this height (never up); default 1024 for the upright solvers, "
                     "512 for COLMAP.")
-    max_features: int = Field(default=4096, ge=100, description="SIFT features per image at most (COLMAP).")
-    min_matches: int = Field(default=15, ge=5, description="Verified matches a pair of images needs to count "
-                                                           "(COLMAP).")
+    max_features: int = Field(default=SfmOptions.max_features, ge=100,
+                              description="SIFT features per image at most (COLMAP).")
+    min_matches: int = Field(default=SfmOptions.min_matches, ge=5,
+                             description="Verified matches a pair of images needs to count (COLMAP).")
     default_camera_height: float = Field(
         default=1.6, ge=MIN_CAMERA_HEIGHT, le=MAX_CAMERA_HEIGHT,
         description="Camera height (m) for views without camera_height in scene.json: it sets the metric scale "
