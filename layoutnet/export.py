@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from layoutnet.inference import INPUT_SHAPE
 from runfs.checkpoints import load_weights
 from runfs.errors import PanoError
 
@@ -33,7 +34,7 @@ def export_onnx(
     out.parent.mkdir(parents=True, exist_ok=True)
     module = module.eval()
     g = torch.Generator().manual_seed(seed)
-    x = torch.rand(1, 3, 512, 1024, generator=g)
+    x = torch.rand(*INPUT_SHAPE, generator=g)
     with torch.no_grad(), warnings.catch_warnings():
         # The tracer's notes on the fixed-size check and LSTM batch size: the export is batch 1, fixed size.
         warnings.simplefilter("ignore")

@@ -15,9 +15,9 @@ import numpy as np
 from layoutnet import postprocess as pp
 from layoutnet.alignment import Alignment
 from layoutnet.formats import SuppliedLayout
+from layoutnet.inference import INPUT_SHAPE
 
-#: the model's input size (HorizonNet's)
-MODEL_HEIGHT, MODEL_WIDTH = 512, 1024
+MODEL_HEIGHT, MODEL_WIDTH = INPUT_SHAPE[2:]  # the layout model's contract (HorizonNet's size)
 
 
 @dataclass
